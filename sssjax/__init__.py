@@ -6,10 +6,33 @@ Public API:
 
 - `Medium`, `preset`, `preset_names`: scattering media and Jensen et al. 2001's measurements.
 - `dipole`: the BSSRDF physics (Fresnel terms, `Rd`, `Rd_total`, `Sd`, single scattering).
+- `load_scene`: a scene from a TOML file or a dict.
+- `trace`, `shade`, `render`: the geometric pass, the differentiable pass, and both.
+- `imageio`: `read_image` / `write_image` through OpenImageIO.
 """
 
-from . import dipole
+from . import dipole, imageio
 from ._version import __version__
 from .media import PRESETS, Medium, preset, preset_names
+from .render import render
+from .scene import Scene, SceneError, load_scene
+from .shade import shade, shade_image
+from .trace import Transport, trace
 
-__all__ = ["__version__", "Medium", "PRESETS", "preset", "preset_names", "dipole"]
+__all__ = [
+    "__version__",
+    "Medium",
+    "PRESETS",
+    "preset",
+    "preset_names",
+    "dipole",
+    "imageio",
+    "Scene",
+    "SceneError",
+    "load_scene",
+    "trace",
+    "shade",
+    "shade_image",
+    "render",
+    "Transport",
+]

@@ -1,0 +1,603 @@
+"""Scenes: loading from TOML or a plain dict, with validation that names file, table and field.
+
+A scene file has the tables `[camera]`, `[render]`, `[sss]`, `[[lights]]`, `[materials.NAME]`
+and `[[shapes]]`. Lengths are in **mm**, scattering coefficients in **mm^-1**, colours are
+linear RGB (a single number is broadcast to grey). See `scenes/*.toml` for examples and
+`docs/scene_format.md` for every field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .media import Medium, preset, preset_names
+
+__all__ = [
+    "SceneError",
+    "Camera",
+    "AreaLight",
+    "PointLight",
+    "Material",
+    "ShapeSpec",
+    "RenderSettings",
+    "SSSSettings",
+    "Scene",
+    "load_scene",
+]
+
+
+class SceneError(ValueError):
+    """A problem in a scene description, reported as `FILE: [table] field: message`."""
+
+
+# --- the parsed scene ------------------------------------------------------------------
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole camera. `fov` is the vertical field of view in degrees; positions in mm."""
+
+    origin: np.ndarray
+    target: np.ndarray
+    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+    fov: float = 40.0
+    width: int = 256
+    height: int = 256
+
+    def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Unit (forward, right, up) vectors of the image plane."""
+        fwd = self.target - self.origin
+        fwd = fwd / np.linalg.norm(fwd)
+        right = np.cross(fwd, self.up)
+        right = right / np.linalg.norm(right)
+        up = np.cross(right, fwd)
+        return fwd, right, up
+
+
+@dataclass(frozen=True)
+class AreaLight:
+    """A one-sided emitting parallelogram `corner + u edge_u + v edge_v`, emitting `radiance`
+    (W mm^-2 sr^-1, RGB) towards `edge_u x edge_v`."""
+
+    corner: np.ndarray
+    edge_u: np.ndarray
+    edge_v: np.ndarray
+    radiance: np.ndarray
+
+    @property
+    def normal(self) -> np.ndarray:
+        n = np.cross(self.edge_u, self.edge_v)
+        return n / np.linalg.norm(n)
+
+    @property
+    def area(self) -> float:
+        return float(np.linalg.norm(np.cross(self.edge_u, self.edge_v)))
+
+
+@dataclass(frozen=True)
+class PointLight:
+    """An isotropic point light of RGB `intensity` (W sr^-1) at `position` (mm)."""
+
+    position: np.ndarray
+    intensity: np.ndarray
+
+
+@dataclass(frozen=True)
+class Material:
+    """`type` is `diffuse` (uses `albedo`), `mirror` (`reflectance`) or `translucent` (`medium`)."""
+
+    name: str
+    type: str
+    albedo: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    reflectance: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    medium: Medium | None = None
+
+
+@dataclass(frozen=True)
+class ShapeSpec:
+    """One shape instance: the geometry object from `sssjax.shapes` and its material name."""
+
+    kind: str
+    material: str
+    shape: Any
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    spp: int = 16
+    light_samples: int = 4
+    max_depth: int = 4
+    seed: int = 0
+    background: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    tile: int = 32
+
+
+@dataclass(frozen=True)
+class SSSSettings:
+    enabled: bool = True
+    single_scattering: bool = True
+    cloud_size: int = 8192
+    single_samples: int = 1
+    strategy: str = "cloud"
+    samples: int = 16
+    radius: float = 0.0
+    inner: float = 0.0
+    outer: float = 0.0
+    tries: int = 8
+    bins: int = 256
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A validated scene. Build it with `load_scene(path_or_dict)`."""
+
+    camera: Camera
+    lights: tuple
+    materials: dict
+    shapes: tuple
+    render: RenderSettings = field(default_factory=RenderSettings)
+    sss: SSSSettings = field(default_factory=SSSSettings)
+    path: str | None = None
+    source: dict | None = None
+
+    @property
+    def translucent_materials(self) -> list[str]:
+        """Names of the translucent materials that some shape uses, in a fixed order."""
+        used = {s.material for s in self.shapes}
+        return [n for n, m in self.materials.items() if m.type == "translucent" and n in used]
+
+    def media(self) -> dict[str, Medium]:
+        """The media of the translucent materials, by name: the argument of `shade`."""
+        return {n: self.materials[n].medium for n in self.translucent_materials}
+
+    def replace(self, **kw) -> Scene:
+        """A copy with some top-level fields replaced (`camera=...`, `render=...`)."""
+        return dataclasses.replace(self, **kw)
+
+    def with_settings(self, **kw) -> Scene:
+        """A copy with render settings (`spp`, `seed`, `light_samples`, ...) or SSS settings
+        (prefixed `sss_`, e.g. `sss_enabled=False`) or camera size (`width`, `height`) changed."""
+        r = {k: v for k, v in kw.items() if k in RenderSettings.__dataclass_fields__}
+        s = {k[4:]: v for k, v in kw.items() if k.startswith("sss_")}
+        c = {k: v for k, v in kw.items() if k in ("width", "height", "fov")}
+        unknown = set(kw) - set(r) - {f"sss_{k}" for k in s} - set(c)
+        if unknown:
+            raise TypeError(f"unknown settings: {sorted(unknown)}")
+        return dataclasses.replace(
+            self,
+            render=dataclasses.replace(self.render, **r),
+            sss=dataclasses.replace(self.sss, **s),
+            camera=dataclasses.replace(self.camera, **c),
+        )
+
+
+# --- schema-driven validation ----------------------------------------------------------
+REQUIRED = object()
+
+
+class _Ctx:
+    def __init__(self, file: str, table: str):
+        self.file, self.table = file, table
+
+    def err(self, field_name: str | None, msg: str) -> SceneError:
+        where = f"[{self.table}]" + (f" {field_name}" if field_name else "")
+        return SceneError(f"{self.file}: {where}: {msg}")
+
+
+def _fmt(v: Any) -> str:
+    return repr(v) if isinstance(v, str) else str(v)
+
+
+def _number(ctx, name, v):
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise ctx.err(name, f"expected a number, got {_fmt(v)}")
+    if not math.isfinite(v):
+        raise ctx.err(name, f"must be finite, got {_fmt(v)}")
+    return float(v)
+
+
+def _vec3(ctx, name, v):
+    if not isinstance(v, list | tuple) or len(v) != 3:
+        raise ctx.err(name, f"expected a list of 3 numbers, got {_fmt(v)}")
+    return np.array([_number(ctx, name, x) for x in v], dtype=np.float64)
+
+
+def _rgb(ctx, name, v):
+    if isinstance(v, int | float) and not isinstance(v, bool):
+        v = [v, v, v]
+    out = _vec3(ctx, name, v)
+    if np.any(out < 0):
+        raise ctx.err(name, f"must be >= 0, got {_fmt([float(x) for x in out])}")
+    return out
+
+
+def _int(ctx, name, v):
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise ctx.err(name, f"expected an integer, got {_fmt(v)}")
+    return v
+
+
+def _pos_int(ctx, name, v):
+    v = _int(ctx, name, v)
+    if v < 1:
+        raise ctx.err(name, f"must be >= 1, got {v}")
+    return v
+
+
+def _nonneg_int(ctx, name, v):
+    v = _int(ctx, name, v)
+    if v < 0:
+        raise ctx.err(name, f"must be >= 0, got {v}")
+    return v
+
+
+def _pos(ctx, name, v):
+    v = _number(ctx, name, v)
+    if v <= 0:
+        raise ctx.err(name, f"must be > 0, got {v:g}")
+    return v
+
+
+def _nonneg(ctx, name, v):
+    v = _number(ctx, name, v)
+    if v < 0:
+        raise ctx.err(name, f"must be >= 0, got {v:g}")
+    return v
+
+
+def _str(ctx, name, v):
+    if not isinstance(v, str):
+        raise ctx.err(name, f"expected a string, got {_fmt(v)}")
+    return v
+
+
+def _bool(ctx, name, v):
+    if not isinstance(v, bool):
+        raise ctx.err(name, f"expected true or false, got {_fmt(v)}")
+    return v
+
+
+def _scale(ctx, name, v):
+    if isinstance(v, int | float) and not isinstance(v, bool):
+        s = _pos(ctx, name, v)
+        return np.array([s, s, s])
+    out = _vec3(ctx, name, v)
+    if np.any(out <= 0):
+        raise ctx.err(name, f"must be > 0, got {_fmt([float(x) for x in out])}")
+    return out
+
+
+def _size(ctx, name, v):
+    if isinstance(v, list | tuple):
+        return _scale(ctx, name, v)
+    return _pos(ctx, name, v)
+
+
+def _any(ctx, name, v):
+    return v
+
+
+def _fields(ctx: _Ctx, data: Any, schema: dict) -> dict:
+    """Check `data` against `schema` {field: (checker, default)}; unknown keys get a hint."""
+    if not isinstance(data, Mapping):
+        raise ctx.err(None, f"expected a table, got {_fmt(data)}")
+    for key in data:
+        if key not in schema:
+            close = difflib.get_close_matches(key, list(schema), n=1)
+            hint = f"; did you mean '{close[0]}'?" if close else ""
+            known = ", ".join(sorted(schema))
+            raise ctx.err(key, f"unknown field{hint} (known fields: {known})")
+    out = {}
+    for name, (check, default) in schema.items():
+        if name in data:
+            out[name] = check(ctx, name, data[name])
+        elif default is REQUIRED:
+            raise ctx.err(name, "missing required field")
+        else:
+            out[name] = default() if callable(default) else default
+    return out
+
+
+_CAMERA = {
+    "origin": (_vec3, REQUIRED),
+    "target": (_vec3, REQUIRED),
+    "up": (_vec3, lambda: np.array([0.0, 1.0, 0.0])),
+    "fov": (_pos, 40.0),
+    "width": (_pos_int, 256),
+    "height": (_pos_int, 256),
+}
+_RENDER = {
+    "spp": (_pos_int, 16),
+    "light_samples": (_pos_int, 4),
+    "max_depth": (_nonneg_int, 4),
+    "seed": (_nonneg_int, 0),
+    "background": (_rgb, lambda: np.zeros(3)),
+    "tile": (_pos_int, 32),
+}
+_STRATEGIES = ("cloud", "uniform", "within", "annulus")
+_SSS = {
+    "enabled": (_bool, True),
+    "single_scattering": (_bool, True),
+    "cloud_size": (_pos_int, 8192),
+    "single_samples": (_pos_int, 1),
+    "strategy": (_str, "cloud"),
+    "samples": (_pos_int, 16),
+    "radius": (_nonneg, 0.0),
+    "inner": (_nonneg, 0.0),
+    "outer": (_nonneg, 0.0),
+    "tries": (_pos_int, 8),
+    "bins": (_pos_int, 256),
+}
+_LIGHTS = {
+    "area": {
+        "type": (_str, REQUIRED),
+        "corner": (_vec3, REQUIRED),
+        "edge_u": (_vec3, REQUIRED),
+        "edge_v": (_vec3, REQUIRED),
+        "radiance": (_rgb, REQUIRED),
+    },
+    "point": {
+        "type": (_str, REQUIRED),
+        "position": (_vec3, REQUIRED),
+        "intensity": (_rgb, REQUIRED),
+    },
+}
+_MATERIALS = {
+    "diffuse": {"type": (_str, REQUIRED), "albedo": (_rgb, REQUIRED)},
+    "mirror": {"type": (_str, REQUIRED), "reflectance": (_rgb, lambda: np.ones(3))},
+    "translucent": {
+        "type": (_str, REQUIRED),
+        "preset": (_str, None),
+        "sigma_a": (_rgb, None),
+        "sigma_s": (_rgb, None),
+        "sigmap_s": (_rgb, None),
+        "g": (_number, 0.0),
+        "eta": (_pos, None),
+        "scale": (_rgb, lambda: np.ones(3)),
+    },
+}
+_PLACEMENT = {
+    "type": (_str, REQUIRED),
+    "material": (_str, REQUIRED),
+    "translate": (_vec3, lambda: np.zeros(3)),
+    "rotate": (_vec3, lambda: np.zeros(3)),
+    "scale": (_scale, lambda: np.ones(3)),
+}
+_SHAPES = {
+    "sphere": {"radius": (_pos, REQUIRED)},
+    "cube": {"size": (_size, REQUIRED)},
+    "cylinder": {"radius": (_pos, REQUIRED), "height": (_pos, REQUIRED)},
+    "cone": {"radius": (_pos, REQUIRED), "height": (_pos, REQUIRED)},
+    "quadmesh": {"vertices": (_any, None), "faces": (_any, None), "file": (_str, None)},
+}
+_TOP = ("camera", "render", "sss", "lights", "materials", "shapes")
+
+
+def _kind(ctx: _Ctx, data: Any, kinds: dict, what: str) -> str:
+    if not isinstance(data, Mapping):
+        raise ctx.err(None, f"expected a table, got {_fmt(data)}")
+    if "type" not in data:
+        raise ctx.err("type", f"missing required field (one of: {', '.join(kinds)})")
+    kind = data["type"]
+    if kind not in kinds:
+        close = difflib.get_close_matches(str(kind), list(kinds), n=1)
+        hint = f"; did you mean '{close[0]}'?" if close else ""
+        raise ctx.err("type", f"unknown {what} type {_fmt(kind)}{hint} (known: {', '.join(kinds)})")
+    return kind
+
+
+def _translucent_medium(ctx: _Ctx, f: dict) -> Medium:
+    if f["preset"] is not None:
+        for k in ("sigma_a", "sigma_s", "sigmap_s"):
+            if f[k] is not None:
+                raise ctx.err(k, "give either 'preset' or explicit coefficients, not both")
+        try:
+            m = preset(f["preset"])
+        except ValueError as e:
+            raise ctx.err("preset", str(e)) from None
+        sigma_a, sigma_s, g, eta = m.sigma_a, m.sigma_s, float(m.g), float(m.eta)
+        if f["eta"] is not None:
+            eta = f["eta"]
+    else:
+        if f["sigma_a"] is None:
+            raise ctx.err(
+                "sigma_a",
+                f"missing: give 'preset' (one of {', '.join(preset_names())}) "
+                "or 'sigma_a' with 'sigma_s' or 'sigmap_s'",
+            )
+        if (f["sigma_s"] is None) == (f["sigmap_s"] is None):
+            raise ctx.err("sigma_s", "give exactly one of 'sigma_s' and 'sigmap_s'")
+        g = f["g"]
+        if not -1.0 < g < 1.0:
+            raise ctx.err("g", f"must satisfy |g| < 1, got {g:g}")
+        sigma_a = f["sigma_a"]
+        sigma_s = f["sigma_s"] if f["sigma_s"] is not None else f["sigmap_s"] / (1.0 - g)
+        eta = 1.3 if f["eta"] is None else f["eta"]
+    scale = f["scale"]
+    try:
+        return Medium(np.asarray(sigma_a) * scale, np.asarray(sigma_s) * scale, g, eta)
+    except ValueError as e:
+        raise ctx.err(None, str(e)) from None
+
+
+def _parse_mesh(ctx: _Ctx, f: dict, base: Path | None):
+    from . import shapes
+
+    if f["file"] is not None:
+        if f["vertices"] is not None or f["faces"] is not None:
+            raise ctx.err("file", "give either 'file' or inline 'vertices' and 'faces', not both")
+        path = Path(f["file"])
+        if not path.is_absolute() and base is not None:
+            path = base / path
+        if not path.exists():
+            raise ctx.err("file", f"OBJ file not found: {path}")
+        try:
+            return shapes.load_obj(path)
+        except (ValueError, OSError) as e:
+            raise ctx.err("file", f"cannot parse OBJ: {e}") from None
+    if f["vertices"] is None or f["faces"] is None:
+        raise ctx.err("vertices", "a quadmesh needs 'file' or both 'vertices' and 'faces'")
+    try:
+        verts = np.asarray(f["vertices"], dtype=np.float64)
+    except (ValueError, TypeError):
+        raise ctx.err("vertices", "expected a list of [x, y, z] triples") from None
+    if verts.ndim != 2 or verts.shape[1] != 3 or len(verts) < 3 or not np.all(np.isfinite(verts)):
+        raise ctx.err("vertices", "expected a list of at least 3 finite [x, y, z] triples")
+    faces = f["faces"]
+    if not isinstance(faces, list) or not faces:
+        raise ctx.err("faces", "expected a non-empty list of quads or triangles (vertex indices)")
+    for i, face in enumerate(faces):
+        ok = isinstance(face, list) and len(face) in (3, 4)
+        ok = ok and all(isinstance(j, int) and not isinstance(j, bool) for j in face)
+        if not ok:
+            raise ctx.err("faces", f"face {i}: expected 3 or 4 integer indices, got {_fmt(face)}")
+        bad = [j for j in face if not 0 <= j < len(verts)]
+        if bad:
+            raise ctx.err("faces", f"face {i}: index {bad[0]} out of range 0..{len(verts) - 1}")
+    return verts, faces
+
+
+def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = None) -> Scene:
+    """Load and validate a scene.
+
+    **Arguments:**
+
+    - `source`: a path to a TOML scene file, or the same structure as a Python dict.
+    - `base_dir`: folder against which relative OBJ paths resolve (default: the file's folder,
+      or the working directory for a dict).
+
+    **Returns:** a `Scene`. Every problem raises `SceneError` naming file, table and field.
+    """
+    from . import shapes
+
+    if isinstance(source, Mapping):
+        file, data = "<dict>", dict(source)
+        base = Path(base_dir) if base_dir is not None else Path.cwd()
+    else:
+        path = Path(source)
+        file = str(path)
+        if not path.exists():
+            raise SceneError(f"{file}: scene file not found")
+        try:
+            data = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as e:
+            raise SceneError(f"{file}: not valid TOML: {e}") from None
+        except UnicodeDecodeError:
+            raise SceneError(f"{file}: not a text file") from None
+        base = Path(base_dir) if base_dir is not None else path.parent
+
+    for key in data:
+        if key not in _TOP:
+            close = difflib.get_close_matches(key, _TOP, n=1)
+            hint = f"; did you mean '{close[0]}'?" if close else ""
+            raise SceneError(f"{file}: unknown table [{key}]{hint} (known: {', '.join(_TOP)})")
+    if "camera" not in data:
+        raise SceneError(f"{file}: missing required table [camera]")
+
+    cam = _fields(_Ctx(file, "camera"), data["camera"], _CAMERA)
+    cctx = _Ctx(file, "camera")
+    if np.linalg.norm(cam["target"] - cam["origin"]) == 0:
+        raise cctx.err("target", "must differ from 'origin'")
+    if np.linalg.norm(np.cross(cam["target"] - cam["origin"], cam["up"])) < 1e-9:
+        raise cctx.err("up", "must not be parallel to the viewing direction")
+    if not 0 < cam["fov"] < 180:
+        raise cctx.err("fov", f"must be between 0 and 180 degrees, got {cam['fov']:g}")
+    camera = Camera(**cam)
+
+    render = RenderSettings(**_fields(_Ctx(file, "render"), data.get("render", {}), _RENDER))
+    sctx = _Ctx(file, "sss")
+    sss = SSSSettings(**_fields(sctx, data.get("sss", {}), _SSS))
+    if sss.strategy not in _STRATEGIES:
+        close = difflib.get_close_matches(sss.strategy, _STRATEGIES, n=1)
+        hint = f"; did you mean '{close[0]}'?" if close else ""
+        raise sctx.err(
+            "strategy", f"unknown strategy {sss.strategy!r}{hint} (known: {', '.join(_STRATEGIES)})"
+        )
+    if sss.strategy == "within" and sss.radius <= 0:
+        raise sctx.err("radius", "strategy 'within' needs radius > 0 (mm)")
+    if sss.strategy == "annulus" and not 0 <= sss.inner < sss.outer:
+        raise sctx.err(
+            "outer",
+            f"strategy 'annulus' needs 0 <= inner < outer, got "
+            f"inner={sss.inner:g}, outer={sss.outer:g}",
+        )
+
+    raw_lights = data.get("lights", [])
+    if not isinstance(raw_lights, list):
+        raise SceneError(f"{file}: [lights]: expected an array of tables ([[lights]])")
+    lights = []
+    for i, raw in enumerate(raw_lights):
+        ctx = _Ctx(file, f"lights.{i}")
+        kind = _kind(ctx, raw, _LIGHTS, "light")
+        f = _fields(ctx, raw, _LIGHTS[kind])
+        f.pop("type")
+        if kind == "area":
+            if np.linalg.norm(np.cross(f["edge_u"], f["edge_v"])) <= 0:
+                raise ctx.err("edge_v", "edges must span a non-degenerate parallelogram")
+            lights.append(AreaLight(**f))
+        else:
+            lights.append(PointLight(**f))
+
+    raw_mats = data.get("materials", {})
+    if not isinstance(raw_mats, Mapping):
+        raise SceneError(f"{file}: [materials]: expected tables [materials.NAME]")
+    materials = {}
+    for name, raw in raw_mats.items():
+        ctx = _Ctx(file, f"materials.{name}")
+        kind = _kind(ctx, raw, _MATERIALS, "material")
+        f = _fields(ctx, raw, _MATERIALS[kind])
+        if kind == "diffuse":
+            if np.any(f["albedo"] > 1):
+                raise ctx.err("albedo", f"must be <= 1, got {[float(x) for x in f['albedo']]}")
+            materials[name] = Material(name, kind, albedo=f["albedo"])
+        elif kind == "mirror":
+            if np.any(f["reflectance"] > 1):
+                raise ctx.err(
+                    "reflectance", f"must be <= 1, got {[float(x) for x in f['reflectance']]}"
+                )
+            materials[name] = Material(name, kind, reflectance=f["reflectance"])
+        else:
+            materials[name] = Material(name, kind, medium=_translucent_medium(ctx, f))
+
+    raw_shapes = data.get("shapes", [])
+    if not isinstance(raw_shapes, list):
+        raise SceneError(f"{file}: [shapes]: expected an array of tables ([[shapes]])")
+    shape_list = []
+    for i, raw in enumerate(raw_shapes):
+        ctx = _Ctx(file, f"shapes.{i}")
+        kind = _kind(ctx, raw, _SHAPES, "shape")
+        f = _fields(ctx, raw, {**_PLACEMENT, **_SHAPES[kind]})
+        if f["material"] not in materials:
+            known = ", ".join(materials) or "none defined"
+            close = difflib.get_close_matches(f["material"], list(materials), n=1)
+            hint = f"; did you mean '{close[0]}'?" if close else ""
+            raise ctx.err("material", f"no material named {f['material']!r}{hint} (known: {known})")
+        params = {k: f[k] for k in _SHAPES[kind]}
+        if kind == "quadmesh":
+            verts, faces = _parse_mesh(ctx, f, base)
+            params = {"vertices": verts, "faces": faces}
+        try:
+            geom = shapes.make_shape(kind, params, f["translate"], f["rotate"], f["scale"])
+            if materials[f["material"]].type == "translucent":
+                geom.area()  # translucent shapes need an exact area and sampler
+        except ValueError as e:
+            raise ctx.err("scale", str(e)) from None
+        shape_list.append(ShapeSpec(kind, f["material"], geom))
+
+    return Scene(
+        camera=camera,
+        lights=tuple(lights),
+        materials=materials,
+        shapes=tuple(shape_list),
+        render=render,
+        sss=sss,
+        path=None if isinstance(source, Mapping) else str(source),
+        source=data,
+    )
