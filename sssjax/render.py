@@ -19,7 +19,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .media import Medium
 from .scene import Scene
-from .shade import shade_sss
+from .shade import shade_image, shade_sss
 from .trace import SceneTracer, Transport
 
 __all__ = ["render", "trace_tiles", "Renderer", "as_key"]
@@ -154,7 +154,7 @@ class Renderer:
     def render(self, key, media, progress: bool) -> np.ndarray:
         key = as_key(key, self.scene)
         media = tuple(media)
-        img = np.zeros((self.n_pixels, 3), np.float32)
+        img = np.zeros((self.n_pixels, 3), jnp.result_type(float))  # float64 under x64
         sss_on = self.tracer.sss_on
         cloud = self.cloud(key) if sss_on else None
         counter = [0]
@@ -266,12 +266,23 @@ def render(
     - `progress`: print a progress bar over tiles to stderr.
     - `devices`: JAX devices to shard tiles over (default: all).
 
-    **Returns:** a float32 NumPy image. Same scene, seed and settings give the same image.
+    **Returns:** a NumPy image (float32; float64 under `jax.enable_x64`). Same scene, seed and settings give the same image.
+    Under `jax.grad` / `jax.jacfwd` with respect to `media` it returns a JAX array
+    (`shade_image(trace(scene, key), media)`: the trace is fixed, the shading differentiated).
     """
     r = Renderer(scene, devices)
     m = dict(scene.media())
     if media:
+        unknown = set(media) - set(m)
+        if unknown:
+            raise ValueError(
+                f"render: no translucent material named {sorted(unknown)} in the scene "
+                f"(translucent materials: {', '.join(m) or 'none'})"
+            )
         m.update(media)
-    tr_materials = r.tracer.tmat_names
-    ordered = tuple(m[n] for n in tr_materials)
+    ordered = tuple(m[n] for n in r.tracer.tmat_names)
+    leaves = jax.tree_util.tree_leaves(ordered)
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        # under jax.grad / jacfwd / vmap: the differentiable path, shade(trace(scene))
+        return shade_image(r.trace(key, progress), ordered)
     return r.render(key, ordered, progress)

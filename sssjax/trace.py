@@ -331,8 +331,12 @@ class SceneTracer:
                 ul = stratified_2d(jax.random.fold_in(k_chain, depth), nl * nl, (M,))
 
                 def transmit(c, is_t=is_t, eta=eta):
+                    # c is (M,) for point lights and (M, strata) for area lights
+                    shape = (-1,) + (1,) * (c.ndim - 1)
                     return jnp.where(
-                        is_t[:, None], dipole.fresnel_transmittance(c, eta[:, None]), 1.0
+                        is_t.reshape(shape),
+                        dipole.fresnel_transmittance(c, eta.reshape(shape)),
+                        1.0,
                     )
 
                 E = direct_irradiance(self.lights, x, ns, ul, self.occluded, transmit)
