@@ -133,6 +133,10 @@ def _cmd_render(args: argparse.Namespace) -> int:
         Path("out") / f"{stem}.png",
         Path("out") / f"{stem}.exr",
     ]
+    inputs = {p.resolve() for p in _scene_inputs(scene)}
+    for out in outputs:
+        if out.resolve() in inputs:
+            raise UserError(f"refusing to overwrite the input file {out} (choose another -o)")
     for path in render_to_files(
         scene, outputs, seed=args.seed, exposure=args.exposure, tonemap=args.tonemap
     ):
@@ -154,6 +158,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     if not scene_path.exists():
         scene_path = Path("scenes/marble_cube.toml")
     scene = load_scene(scene_path)
+    if args.size:
+        scene = scene.with_settings(width=args.size, height=args.size)
+    if args.spp:
+        scene = scene.with_settings(spp=args.spp)
     print(f"\nrendering {scene_path} (compiles first; about a minute on 2 cores) ...")
     for p in render_to_files(
         scene,
@@ -182,6 +190,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("demo", help="the `make demo` job")
     s.add_argument("--out", default="out", help="output folder (default: out)")
     s.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
+    s.add_argument("--size", type=int, default=0, help="override the image size (pixels)")
+    s.add_argument("--spp", type=int, default=0, help="override samples per pixel")
     s.set_defaults(func=_cmd_demo)
 
     s = sub.add_parser("render", help="ray trace a scene file to EXR (linear) and/or PNG (sRGB)")

@@ -22,7 +22,7 @@ from .scene import Scene
 from .shade import shade_image, shade_sss
 from .trace import SceneTracer, Transport
 
-__all__ = ["render", "trace_tiles", "Renderer", "as_key"]
+__all__ = ["render", "trace_tiles", "Renderer", "renderer_for", "as_key"]
 
 
 def as_key(key, scene: Scene):
@@ -243,9 +243,27 @@ def _take_block(out, i: int, valid: np.ndarray) -> dict:
     return d
 
 
+_CACHE: list[tuple[Scene, tuple, Renderer]] = []
+
+
+def renderer_for(scene: Scene, devices=None) -> Renderer:
+    """The compiled `Renderer` of `scene`, reused across calls (a few most recent scenes).
+
+    Scenes are immutable, so the same object always means the same renderer; `with_settings`
+    returns a new scene (and so a new renderer)."""
+    devs = tuple(devices) if devices is not None else tuple(jax.devices())
+    for sc, dv, r in _CACHE:
+        if sc is scene and dv == devs:
+            return r
+    r = Renderer(scene, devs)
+    _CACHE.insert(0, (scene, devs, r))
+    del _CACHE[4:]
+    return r
+
+
 def trace_tiles(scene: Scene, key=None, *, progress: bool = False) -> Transport:
     """`trace` over the whole image, tile by tile (see `sssjax.trace.trace`)."""
-    return Renderer(scene).trace(key, progress)
+    return renderer_for(scene).trace(key, progress)
 
 
 def render(
@@ -270,7 +288,7 @@ def render(
     Under `jax.grad` / `jax.jacfwd` with respect to `media` it returns a JAX array
     (`shade_image(trace(scene, key), media)`: the trace is fixed, the shading differentiated).
     """
-    r = Renderer(scene, devices)
+    r = renderer_for(scene, devices)
     m = dict(scene.media())
     if media:
         unknown = set(media) - set(m)

@@ -105,22 +105,21 @@ def form_factor_rect(p, q, p0, p1, q0, q1, d):
     return F(p1 - p, q1 - q) - F(p0 - p, q1 - q) - F(p1 - p, q0 - q) + F(p0 - p, q0 - q)
 
 
-def plain_mc_sd(x, n, light, count=20000, seed=1):
-    """Standard deviation of one-sample estimates `A L cos cos / r^2` of the irradiance at `x`
-    (normal `n`) from an unoccluded area light (corner, edge_u, edge_v, radiance scalar), with
-    the light point uniform on the light: the plain Monte Carlo error of one shadow sample.
-    Stratified (jittered) sampling can only lower it."""
-    c, eu, ev, L = light
-    rng = np.random.default_rng(seed)
-    u = rng.random((count, 2))
-    y = c + u[:, :1] * eu + u[:, 1:] * ev
-    w = y - x
+def plain_mc_sd(x, n, light, count=4000, seed=1):
+    """Standard deviation of one-sample estimates `A L cos cos / r^2` of the irradiance at the
+    points `x` `(..., 3)` (normal `n`) from an unoccluded area light `(corner, edge_u, edge_v,
+    radiance)` whose point is drawn uniformly: the plain Monte Carlo error of one shadow
+    sample, shape `(...)`. Stratified (jittered) sampling can only lower it."""
+    c, eu, ev, L = (np.asarray(v, float) for v in light)
+    u = np.random.default_rng(seed).random((count, 2))
+    y = c + u[:, :1] * eu + u[:, 1:] * ev  # (count, 3)
+    w = y - np.asarray(x, float)[..., None, :]
     r2 = np.sum(w * w, -1)
-    w /= np.sqrt(r2)[:, None]
+    w /= np.sqrt(r2)[..., None]
     nl = np.cross(eu, ev)
     A = np.linalg.norm(nl)
-    g = (w @ n) * -(w @ (nl / A)) / r2
-    return float(np.std(A * L * g))
+    g = np.maximum(w @ np.asarray(n, float), 0) * np.maximum(-(w @ (nl / A)), 0) / r2
+    return np.std(A * L * g, axis=-1)
 
 
 # --- the reference camera agrees with the renderer's documented projection --------------
@@ -169,21 +168,18 @@ def test_area_light_irradiance_matches_form_factor():
     assert abs(F0 - form_factor_rect(0, 0, -20, 20, -10, 10, 50)) < 1e-12
     assert np.all(np.abs(F / F0 - 1) < 0.01)  # the view is centred below the light
 
-    # Monte Carlo bound: spp * n^2 = 256 shadow samples per pixel, plain-MC error of one
-    # sample sd (relative about 0.1), jittered strata only lower it. Tolerance 4 SE per pixel
-    # (about 2.5 %) and 4 SE / 8 on the mean of the 64 independent pixels (about 0.3 %).
-    x0 = np.array([0.0, 0.0, 0.0])
-    sd = plain_mc_sd(
-        x0,
-        np.array([0, 1.0, 0]),
-        (np.array([-w / 2, d, -h / 2]), np.array([w, 0, 0]), np.array([0, 0, h]), 1.0),
-    )
-    se = rho * L / np.pi * sd / math.sqrt(spp * n * n)  # (3,)
-    assert np.all(se / want[0, 0] < 0.01)
+    # Monte Carlo bound: spp * n^2 = 256 shadow samples per pixel; one plain-MC sample has
+    # a relative spread of about 0.09, jittered strata only lower it: SE <= 0.55 % per pixel.
+    # Tolerance 4 SE per pixel (about 2.2 %) and 4 SE / 8 on the mean of the 64 independent
+    # pixels (about 0.3 %), plus 1e-4 relative for float32.
+    sd = plain_mc_sd(p.mean(-2), [0, 1, 0], ([-w / 2, d, -h / 2], [w, 0, 0], [0, 0, h], 1.0))
+    se = rho * L / np.pi * sd[..., None] / math.sqrt(spp * n * n)  # (8, 8, 3)
+    assert np.all(se / want < 0.006)
     err = img - want
     assert np.all(np.abs(err) <= 4 * se + 1e-4 * want), np.abs(err / want).max()
     mean_err = np.abs(err.mean(axis=(0, 1)))
-    assert np.all(mean_err <= 4 * se / 8 + 1e-4 * want.mean(axis=(0, 1))), mean_err
+    mean_tol = 4 * se.mean(axis=(0, 1)) / 8 + 1e-4 * want.mean(axis=(0, 1))
+    assert np.all(mean_err <= mean_tol), (mean_err, mean_tol)
 
 
 # --- 2. point light --------------------------------------------------------------------
@@ -270,7 +266,7 @@ def test_penumbra_of_straight_edge():
     # the spread over seeds in the penumbra agrees with that bound
     sd = np.sqrt(np.mean(imgs[:, pen].var(0, ddof=1)))
     assert sd <= se1, (sd, se1)
-    # the umbra is exactly black, the fully lit end smooth
+    # the umbra is exactly black
     assert np.all(imgs[:, want == 0] == 0)
 
 
@@ -301,10 +297,10 @@ def test_antialiased_silhouette_converges_to_coverage():
 
     spp = 64 (an 8 x 8 jittered grid): a straight edge crosses one column (or row) of 8
     strata, each a Bernoulli sample: SE <= sqrt(8 / 4) / 64 = 0.022 per edge pixel. Tolerance
-    0.08 (3.6 SE) per pixel, 0.02 on the mean along each edge (16 pixels: SE <= 0.0055)."""
-    W = Hh = 16
+    0.08 (3.6 SE) per pixel, 0.02 on the mean along each edge (20 pixels: SE <= 0.005)."""
+    W = Hh = 24
     spp = 64
-    xe, ye = 0.37, -0.83
+    xe, ye = 6.1, 6.13
     cam = {"origin": [0.0, 0.0, 100.0], "target": [0.0, 0.0, 0.0], "fov": 10.0}
     cam.update(width=W, height=Hh)
     scene = make_scene(
@@ -321,6 +317,7 @@ def test_antialiased_silhouette_converges_to_coverage():
     img = img[..., 0]
     ex, ey = np.asarray(project(scene.camera, np.array([[xe, ye, 0.0]])))[0]
     assert 0.2 < ex % 1 < 0.8 and 0.2 < ey % 1 < 0.8  # both edges cut pixels
+    assert int(ex) >= 20 and Hh - int(ey) - 1 >= 20  # 20 pixels along each edge
     fx = np.clip(ex - np.arange(W), 0, 1)  # covered part of each column (left of the edge)
     fy = np.clip(np.arange(Hh) + 1 - ey, 0, 1)  # covered part of each row (below the edge)
     want = 1 - fy[:, None] * fx[None, :]
@@ -475,18 +472,14 @@ def test_area_light_one_sided():
     _, pw = hit_plane(o, d, 2, zb)
     F = form_factor_rect(pw[..., 0], pw[..., 1], 2.0, 12.0, -5.0, 5.0, -zb).mean(-1)
     want = rho * LB * F[..., None]
-    # plain-MC bound of one shadow sample at the backdrop point below B's centre (the largest
-    # irradiance); 256 samples per pixel; 4 SE, plus 2e-3 of the peak for float32 and
-    # the off-centre points (where the relative spread is larger but the value smaller)
-    sd = plain_mc_sd(
-        np.array([7.0, 0.0, zb]),
-        np.array([0, 0, 1.0]),
-        (np.array([2.0, -5.0, 0.0]), np.array([0, 10.0, 0]), np.array([10.0, 0, 0]), 1.0),
-    )
-    se = rho * LB / np.pi * sd / math.sqrt(spp * n * n)
+    # plain-MC bound of one shadow sample at each pixel's mean backdrop point; 256 samples
+    # per pixel; tolerance 4 SE plus 2e-3 of the peak (float32, and the variation of that
+    # bound over the pixel footprint)
+    sd = plain_mc_sd(pw.mean(-2), [0, 0, 1], ([2, -5, 0], [0, 10, 0], [10, 0, 0], 1.0))
+    se = rho * LB / np.pi * sd[..., None] / math.sqrt(spp * n * n)
+    tol = (4 * se + 2e-3 * want.max())[wall_px]
     err = np.abs(img[wall_px] - want[wall_px])
-    tol = 4 * se + 2e-3 * want.max()
-    assert np.all(err <= tol), err.max()
+    assert np.all(err <= tol), (err / tol).max()
     # A would add this much if it lit the backdrop (were it two-sided): far above tolerance
     FA = form_factor_rect(pw[..., 0], pw[..., 1], -12.0, -2.0, -5.0, 5.0, -zb).mean(-1)
-    assert (rho * LA * FA[..., None])[wall_px].max() > 20 * tol.max()
+    assert (rho * LA * FA[..., None])[wall_px].max() > 10 * tol.max()

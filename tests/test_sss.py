@@ -33,7 +33,6 @@ def slab_scene(
     intensity=1e6,
     seed=0,
 ):
-    half = size / 2
     return sssjax.load_scene(
         {
             "camera": {
