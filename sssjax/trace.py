@@ -377,9 +377,15 @@ class SceneTracer:
         P, S = slots["have"].shape
         M = P * S
         s = {f: v.reshape(M, *v.shape[2:]) for f, v in slots.items()}
-        hist = self._gather_ms(
-            cloud, s["have"], s["xo"], s["cos_o"], s["tobj"], s["T_slot"], s["E_o"], P, S
-        )
+        k_ms, key = jax.random.split(key)
+        if self.scene.sss.strategy == "cloud":
+            hist = self._gather_ms(
+                cloud, s["have"], s["xo"], s["cos_o"], s["tobj"], s["T_slot"], s["E_o"], P, S
+            )
+        else:
+            hist = self._sample_ms(
+                k_ms, s["have"], s["xo"], s["cos_o"], s["tobj"], s["T_slot"], P, S
+            )
         K = self.ss_per_sample
         if K > 0:
             ss = self._single_scatter(
@@ -435,16 +441,8 @@ class SceneTracer:
         w_o = w_o * cloud.area[tobj][:, None] / S  # area per point; / S for the pixel mean
         far = (r >= jnp.asarray(self.tobj_rnear, dtype=float)[tobj][:, None])[..., None]
         w = jnp.where(far, w_o[:, None, :] * E * S, 0.0)  # (M, n_sub, 3)
-        u = jnp.log1p(r / R0_MM) / self.du
-        b0 = jnp.clip(jnp.floor(u), 0, B - 2).astype(jnp.int32)
-        frac = jnp.clip(u - b0, 0.0, 1.0)[..., None]
-        pix = jnp.repeat(jnp.arange(P), S)[:, None]
+        hist = self._bin(r, w, tobj, P, S)
         mat = jnp.asarray(self.tobj_mat)[tobj][:, None]
-        flat = (mat * P + pix) * B + b0  # (M, n_sub)
-        hist = jnp.zeros((Mt * P * B, 3))
-        hist = hist.at[flat.ravel()].add((w * (1 - frac)).reshape(-1, 3))
-        hist = hist.at[(flat + 1).ravel()].add((w * frac).reshape(-1, 3))
-        hist = hist.reshape(Mt, P, B, 3)
         # near field: (T F_t / pi) E(x_o) int_{r < R_near} 2 pi r R_d(r) dr, on the nodes
         w_near = jnp.where(have[:, None], T_slot * E_o * (Ft_o / jnp.pi)[:, None], 0.0) / S
         nw = jnp.asarray(self.near_weights, dtype=float)[tobj]  # (M, B)
@@ -456,6 +454,79 @@ class SceneTracer:
             onehot.reshape(P, S, Mt),
         )
         return hist + near
+
+    def _bin(self, r, w, tobj, P, S):
+        """Scatter weights `w (M, n, 3)` at distances `r (M, n)` onto the distance nodes of
+        each sample's pixel and material (linear hat interpolation in `log(1 + r / r0)`)."""
+        Mt, B = len(self.tmat_names), self.bins
+        u = jnp.log1p(r / R0_MM) / self.du
+        b0 = jnp.clip(jnp.floor(u), 0, B - 2).astype(jnp.int32)
+        frac = jnp.clip(u - b0, 0.0, 1.0)[..., None]
+        pix = jnp.repeat(jnp.arange(P), S)[:, None]
+        mat = jnp.asarray(self.tobj_mat)[tobj][:, None]
+        flat = (mat * P + pix) * B + b0
+        hist = jnp.zeros((Mt * P * B, 3), w.dtype)
+        hist = hist.at[flat.ravel()].add((w * (1 - frac)).reshape(-1, 3))
+        hist = hist.at[(flat + 1).ravel()].add((w * frac).reshape(-1, 3))
+        return hist.reshape(Mt, P, B, 3)
+
+    def _sample_ms(self, key, have, xo, cos_o, tobj, T_slot, P, S):
+        """Per-pixel Monte Carlo estimate of the dipole gather (strategies `uniform`,
+        `within`, `annulus`): `samples` surface points per camera sample, each with its own
+        shadow-tested irradiance.
+
+        Each of the `samples` slots draws up to `tries` candidates uniformly by area over the
+        object (pdf `1/A`) and keeps the first inside the strategy's region (`uniform`: the
+        whole surface; `within`: `r < radius`; `annulus`: `inner <= r < outer`). The estimator
+        `A (n_accepted / tries) f(x_first accepted)` is exactly unbiased for the integral over
+        the region (given `n_accepted`, the accepted candidates are i.i.d. uniform on the
+        region), so only one irradiance evaluation per slot is needed; a slot with no accepted
+        candidate contributes zero. `within` and `annulus` deliberately leave out the rest of
+        the surface, as in the original report.
+        """
+        cfg = self.scene.sss
+        M = P * S
+        K = cfg.samples
+        T = 1 if cfg.strategy == "uniform" else cfg.tries
+        nl = self.scene.render.light_samples
+        k1, k2, k3 = jax.random.split(key, 3)
+        u2 = stratified_2d(k1, K * T, (M,))  # stratified over the slots x tries of a sample
+        u1 = stratified_1d(k2, K * T, (M,))
+        u = jnp.concatenate([u2, u1[..., None]], axis=-1).reshape(M, K, T, 3)
+        p = jnp.zeros((M, K, T, 3))
+        n = jnp.zeros((M, K, T, 3))
+        area = jnp.zeros(M)
+        eta = jnp.ones(M)
+        for j, i in enumerate(self.tobj_shape):
+            pj, nj = self.shapes[i].sample(u)
+            sel = (tobj == j)[:, None, None, None]
+            p = jnp.where(sel, pj, p)
+            n = jnp.where(sel, nj, n)
+            area = jnp.where(tobj == j, self.tobj_area[j], area)
+            eta = jnp.where(tobj == j, self.shape_eta[i], eta)
+        r = jnp.linalg.norm(p - xo[:, None, None, :], axis=-1)  # (M, K, T)
+        if cfg.strategy == "within":
+            acc = r < cfg.radius
+        elif cfg.strategy == "annulus":
+            acc = (r >= cfg.inner) & (r < cfg.outer)
+        else:
+            acc = jnp.ones(r.shape, bool)
+        n_acc = jnp.sum(acc, axis=-1)  # (M, K)
+        first = jnp.argmax(acc, axis=-1)
+        take = lambda a: jnp.take_along_axis(a, first[..., None, None], axis=2)[:, :, 0]  # noqa: E731
+        p1, n1 = take(p), take(n)
+        r1 = jnp.take_along_axis(r, first[..., None], axis=2)[..., 0]
+        ul = stratified_2d(k3, nl * nl, (M, K))
+
+        def transmit(c):
+            return dipole.fresnel_transmittance(c, eta.reshape((-1,) + (1,) * (c.ndim - 1)))
+
+        E = direct_irradiance(self.lights, p1, n1, ul, self.occluded, transmit)  # (M, K, 3)
+        Ft_o = dipole.fresnel_transmittance(cos_o, eta)
+        w_o = jnp.where(have, 1.0, 0.0)[:, None] * T_slot * (Ft_o / jnp.pi)[:, None]
+        scale = area[:, None] * n_acc / (T * K * S)  # (M, K)
+        w = w_o[:, None, :] * E * scale[..., None]
+        return self._bin(r1, w, tobj, P, S)
 
     def _single_scatter(self, key, have, xo, din, cos_o, tobj, T_slot, P, S):
         """Scatter points along the refracted view ray, connected to every light."""

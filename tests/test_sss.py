@@ -249,3 +249,40 @@ def test_one_and_two_devices_give_the_same_image(tmp_path):
     )
     assert p.returncode == 0, p.stderr[-3000:]
     assert "same" in p.stdout
+
+
+def _ms_mean(scene, seed=0):
+    tr = sssjax.trace(scene, seed)
+    img = sssjax.shade(tr, scene.media(), single=False)
+    return np.asarray(img), tr
+
+
+@pytest.mark.slow
+def test_strategies_agree_with_cloud_within_noise():
+    """The per-pixel Monte Carlo strategies and the irradiance cloud estimate the same
+    integral; `within` with a radius beyond the object equals `uniform`; the two halves of
+    an annulus split add up to the whole."""
+    mat = {"type": "translucent", "preset": "skin1"}
+    kw = dict(width=6, spp=16, size=30.0, thick=8.0, light_height=300.0, intensity=1e5)
+    cloud, _ = _ms_mean(slab_scene(mat, cloud=16384, **kw))
+    ests = {}
+    for name, sss in {
+        "uniform": {"strategy": "uniform", "samples": 64},
+        "within": {"strategy": "within", "radius": 100.0, "samples": 64, "tries": 2},
+        "near": {"strategy": "annulus", "inner": 0.0, "outer": 3.0, "samples": 64, "tries": 8},
+        "far": {"strategy": "annulus", "inner": 3.0, "outer": 100.0, "samples": 64, "tries": 2},
+    }.items():
+        sc = slab_scene(mat, cloud=1024, **kw)
+        sc = sc.replace(sss=sc.sss.__class__(**{**sc.sss.__dict__, **sss}))
+        ests[name], _ = _ms_mean(sc)
+    ref = cloud.mean(axis=0)
+
+    def check(img, what):
+        # every pixel looks at the middle of the slab: treat pixels as independent estimates
+        mean, se = img.mean(axis=0), img.std(axis=0) / np.sqrt(img.shape[0])
+        assert np.all(np.abs(mean - ref) < 4 * se + 0.02 * ref), (what, mean, ref, se)
+
+    check(ests["uniform"], "uniform")
+    check(ests["within"], "within")
+    check(ests["near"] + ests["far"], "near + far")
+    assert np.all(ests["near"].mean(axis=0) > ests["far"].mean(axis=0))  # R_d is peaked
