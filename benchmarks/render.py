@@ -81,8 +81,10 @@ def bench_large(scene_path: str, size: int, spp: int) -> None:
     t0 = time.perf_counter()
     img = sssjax.render(scene, 0)
     dt = time.perf_counter() - t0
-    print(f"{scene_path} {size}x{h} @ {spp} spp: render {dt:.1f} s (incl. compile), "
-          f"peak RSS {peak_rss_mb():.0f} MB, mean {img.mean():.4f}")
+    print(
+        f"{scene_path} {size}x{h} @ {spp} spp: render {dt:.1f} s (incl. compile), "
+        f"peak RSS {peak_rss_mb():.0f} MB, mean {img.mean():.4f}"
+    )
 
 
 if __name__ == "__main__":

@@ -9,10 +9,12 @@ Public API:
 - `load_scene`: a scene from a TOML file or a dict.
 - `trace`, `shade`, `render`: the geometric pass, the differentiable pass, and both.
 - `imageio`: `read_image` / `write_image` through OpenImageIO.
+- `fit`: recover `sigma_a`, `sigma_s` from a target image (trace once, shade per step).
 """
 
 from . import dipole, imageio
 from ._version import __version__
+from .fit import FitResult, fit
 from .media import PRESETS, Medium, preset, preset_names
 from .render import render
 from .scene import Scene, SceneError, load_scene
@@ -35,4 +37,6 @@ __all__ = [
     "shade_image",
     "render",
     "Transport",
+    "fit",
+    "FitResult",
 ]

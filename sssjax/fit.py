@@ -1,0 +1,374 @@
+"""Fitting scattering coefficients to images: where the measurement happens.
+
+`fit(scene, target, ...)` traces the scene once (`trace`) and then runs optimistix's
+Levenberg-Marquardt (default) or Gauss-Newton on pixel residuals of `shade`, in the log of
+the coefficients, with forward-mode Jacobians (few parameters, many pixels). Every iteration
+only re-shades: no ray is cast inside the loop. The result carries standard errors from the
+Gauss-Newton covariance `s^2 (J^T J)^-1` at the solution (mapped from log space by the delta
+method), the correlation matrix, the history and the solver's status.
+
+Coefficients in mm^-1.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .media import Medium
+from .render import as_key, renderer_for
+from .scene import Scene
+from .shade import shade_sss
+
+__all__ = ["fit", "FitResult", "FitError", "PARAM_FIELDS"]
+
+PARAM_FIELDS = ("sigma_a", "sigma_s", "sigmap_s")
+_CH = "RGB"
+
+
+class FitError(ValueError):
+    """Bad fit input (target, mask, parameters, initial guess): a one-line message."""
+
+
+@dataclasses.dataclass
+class FitResult:
+    """What a fit found and how sure it is.
+
+    `values`, `stderr`: per parameter name (`"marble.sigma_a.R"`), in mm^-1.
+    `correlation`: parameter correlation matrix (order of `names`).
+    """
+
+    names: list[str]
+    values: dict[str, float]
+    stderr: dict[str, float]
+    initial: dict[str, float]
+    correlation: list[list[float]]
+    media: dict[str, Medium]
+    steps: int
+    loss_initial: float
+    loss_final: float
+    status: str
+    message: str
+    converged: bool
+    wall_time_s: float
+    trace_time_s: float
+    history: list[dict[str, Any]]
+    warnings: list[str]
+
+    def to_json(self, path: str | Path | None = None) -> str:
+        """The result as JSON (media as coefficient lists); written to `path` if given."""
+        d = dataclasses.asdict(self)
+        d["media"] = {
+            n: {
+                "sigma_a": np.asarray(m.sigma_a).tolist(),
+                "sigma_s": np.asarray(m.sigma_s).tolist(),
+                "sigmap_s": np.asarray(m.sigmap_s).tolist(),
+                "g": np.asarray(m.g).tolist(),
+                "eta": float(m.eta),
+            }
+            for n, m in self.media.items()
+        }
+        d["units"] = "coefficients in 1/mm"
+        text = json.dumps(d, indent=2)
+        if path is not None:
+            Path(path).write_text(text)
+        return text
+
+    def summary(self) -> str:
+        lines = [f"{'parameter':<24} {'value':>10} {'std err':>10} {'initial':>10}"]
+        for n in self.names:
+            lines.append(
+                f"{n:<24} {self.values[n]:10.5g} {self.stderr[n]:10.2g} {self.initial[n]:10.5g}"
+            )
+        lines.append(
+            f"{self.steps} steps, loss {self.loss_initial:.4g} -> {self.loss_final:.4g}, "
+            f"{self.status}: {self.message}"
+        )
+        lines += [f"warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+def _resolve_params(scene: Scene, params: Sequence[str] | None) -> list[tuple[str, str]]:
+    tm = scene.translucent_materials
+    if not tm:
+        raise FitError("the scene has no translucent material to fit")
+    if params is None:
+        return [(m, f) for m in tm for f in ("sigma_a", "sigma_s")]
+    out = []
+    for p in params:
+        mat, _, field = p.rpartition(".")
+        if not mat:
+            if len(tm) != 1:
+                raise FitError(
+                    f"parameter {p!r}: name the material ({', '.join(tm)}), e.g. '{tm[0]}.{p}'"
+                )
+            mat = tm[0]
+        if mat not in tm:
+            raise FitError(
+                f"parameter {p!r}: no translucent material {mat!r} (known: {', '.join(tm)})"
+            )
+        if field not in PARAM_FIELDS:
+            raise FitError(f"unknown parameter {field!r} (known: {', '.join(PARAM_FIELDS)})")
+        out.append((mat, field))
+    for mat in tm:
+        fields = {f for m, f in out if m == mat}
+        if {"sigma_s", "sigmap_s"} <= fields:
+            raise FitError(f"{mat}: free either sigma_s or sigmap_s, not both")
+    return out
+
+
+def _load_target(target, shape: tuple[int, int]) -> np.ndarray:
+    if isinstance(target, str | Path):
+        from .imageio import read_image
+
+        path = Path(target)
+        if not path.exists():
+            raise FitError(f"target image not found: {path}")
+        arr = read_image(path)
+        where = str(path)
+    else:
+        arr = np.asarray(target, dtype=np.float64)
+        where = "target"
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise FitError(f"{where}: expected an (H, W, 3) RGB image, got shape {arr.shape}")
+    if arr.shape[:2] != shape:
+        raise FitError(
+            f"{where}: size {arr.shape[1]}x{arr.shape[0]} does not match the "
+            f"scene's camera {shape[1]}x{shape[0]}"
+        )
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        raise FitError(f"{where}: {int(bad.any(axis=2).sum())} pixels are NaN or inf")
+    if not np.any(arr > 0):
+        raise FitError(f"{where}: the target is all black")
+    return arr
+
+
+def fit(
+    scene: Scene,
+    target,
+    *,
+    params: Sequence[str] | None = None,
+    init: dict[str, Any] | None = None,
+    mask=None,
+    seed=None,
+    solver: str = "lm",
+    max_steps: int = 50,
+    rtol: float = 1e-5,
+    atol: float = 1e-6,
+    progress: bool = False,
+) -> FitResult:
+    """Recover scattering coefficients of the scene's translucent materials from `target`.
+
+    **Arguments:**
+
+    - `scene`: the scene the target was taken in (camera, lights, geometry).
+    - `target`: `(H, W, 3)` linear radiance, or an image path (EXR/PNG/TIFF).
+    - `params`: free parameters, `"MATERIAL.FIELD"` with FIELD in `sigma_a`, `sigma_s`,
+      `sigmap_s` (each RGB; the material may be omitted when there is only one). Default:
+      `sigma_a` and `sigma_s` of every translucent material.
+    - `init`: initial values by `"MATERIAL.FIELD"` (RGB, mm^-1, > 0); default: the scene's.
+    - `mask`: `(H, W)` boolean pixels to fit; default: every pixel that sees a translucent
+      object (the only pixels the coefficients affect).
+    - `seed`: trace seed (default the scene's).
+    - `solver`: `"lm"` (Levenberg-Marquardt), `"gn"` (Gauss-Newton) or `"bfgs"` (on the
+      scalar loss).
+
+    **Returns:** a `FitResult`. A fit that fails to converge says so in `status`/`message`.
+    """
+    t_start = time.perf_counter()
+    cam = scene.camera
+    tgt = _load_target(target, (cam.height, cam.width))
+    free = _resolve_params(scene, params)
+    media0 = scene.media()
+    init = dict(init or {})
+    start = {}
+    for mat, field in free:
+        m = media0[mat]
+        v = np.asarray(getattr(m, field), dtype=np.float64)
+        for key in (f"{mat}.{field}", field):
+            if key in init:
+                v = np.broadcast_to(np.asarray(init.pop(key), dtype=np.float64), (3,))
+                break
+        if not np.all(np.isfinite(v)) or np.any(v <= 0):
+            raise FitError(f"initial {mat}.{field} must be finite and > 0, got {v.tolist()}")
+        start[(mat, field)] = v
+    if init:
+        raise FitError(f"init names parameters that are not free: {sorted(init)}")
+
+    renderer = renderer_for(scene)
+    t0 = time.perf_counter()
+    transport = renderer.trace(as_key(seed, scene), progress=progress)
+    trace_time = time.perf_counter() - t0
+
+    pix = np.asarray(transport.translucent_pixels())
+    rows = np.asarray(transport.t_rows)
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != (cam.height, cam.width):
+            raise FitError(f"mask has shape {mask.shape}, expected {(cam.height, cam.width)}")
+        keep = mask.reshape(-1)[pix]
+        if not keep.any():
+            raise FitError("the mask selects no pixel that sees a translucent object")
+        rows_sel = np.flatnonzero(keep)
+    else:
+        if len(pix) == 0:
+            raise FitError("no pixel sees a translucent object: nothing to fit")
+        rows_sel = np.arange(len(pix))
+    tgt_flat = tgt.reshape(-1, 3)[pix[rows_sel]]
+    base = np.asarray(transport.base)[rows[rows_sel]]
+    scale = float(np.mean(np.abs(tgt_flat))) or 1.0  # residuals in units of the mean level
+    sub = jax.tree_util.tree_map(
+        lambda a: a[:, rows_sel] if a.ndim == 4 else a[rows_sel],
+        _sss_view(transport),
+    )
+    target_j = jnp.asarray((tgt_flat - base) / scale)
+    order = transport.materials
+    r_nodes = transport.r_nodes
+
+    def media_of(y):
+        logs = {k: y[3 * i : 3 * i + 3] for i, k in enumerate(free)}
+        out = []
+        for mat in order:
+            m = media0[mat]
+            sa = jnp.exp(logs[(mat, "sigma_a")]) if (mat, "sigma_a") in logs else m.sigma_a
+            if (mat, "sigmap_s") in logs:
+                ss = jnp.exp(logs[(mat, "sigmap_s")]) / (1.0 - m.g)
+            elif (mat, "sigma_s") in logs:
+                ss = jnp.exp(logs[(mat, "sigma_s")])
+            else:
+                ss = m.sigma_s
+            out.append(Medium(sa, ss, m.g, m.eta))
+        return tuple(out)
+
+    def residuals(y, args=None):
+        L = shade_sss(sub, media_of(y), r_nodes)
+        return (L / scale - target_j).reshape(-1)
+
+    y0 = jnp.asarray(np.log(np.concatenate([start[k] for k in free])))
+    names = [f"{m}.{f}.{_CH[c]}" for m, f in free for c in range(3)]
+    history: list[dict[str, Any]] = []
+
+    if solver in ("lm", "gn"):
+        slv = (optx.LevenbergMarquardt if solver == "lm" else optx.GaussNewton)(rtol, atol)
+        fn = lambda y, args: (residuals(y), None)  # noqa: E731
+        options = {"jac": "fwd"}
+    elif solver == "bfgs":
+        slv = optx.BFGS(rtol, atol)
+        fn = lambda y, args: (0.5 * jnp.sum(residuals(y) ** 2), None)  # noqa: E731
+        options = {}
+    else:
+        raise FitError(f"unknown solver {solver!r} (known: lm, gn, bfgs)")
+
+    tags = frozenset()
+    f_struct, aux_struct = jax.eval_shape(lambda: fn(y0, None))
+    step = eqx.filter_jit(lambda y, s: slv.step(fn, y, None, options, s, tags))
+    terminate = eqx.filter_jit(lambda y, s: slv.terminate(fn, y, None, options, s, tags))
+    loss_fn = jax.jit(lambda y: 0.5 * jnp.sum(residuals(y) ** 2))
+    state = slv.init(fn, y0, None, options, f_struct, aux_struct, tags)
+    y = y0
+    loss0 = float(loss_fn(y0))
+    history.append({"step": 0, "loss": loss0, "params": np.exp(np.asarray(y0)).tolist()})
+    if progress:
+        _progress_line(0, loss0, names, np.exp(np.asarray(y0)))
+    result = optx.RESULTS.max_steps_reached
+    n = 0
+    for n in range(1, max_steps + 1):
+        y, state, _ = step(y, state)
+        done, res = terminate(y, state)
+        loss = float(loss_fn(y))
+        history.append({"step": n, "loss": loss, "params": np.exp(np.asarray(y)).tolist()})
+        if progress:
+            _progress_line(n, loss, names, np.exp(np.asarray(y)))
+        if bool(done):
+            result = res
+            break
+    converged = result == optx.RESULTS.successful
+    status = (
+        "successful"
+        if converged
+        else ("max_steps_reached" if result == optx.RESULTS.max_steps_reached else "failed")
+    )
+    message = optx.RESULTS[result] if not converged else "converged"
+    if not converged and not message:
+        message = f"no convergence within {max_steps} steps"
+
+    # uncertainty: Gauss-Newton covariance at the solution, in log space, then delta method
+    J = np.asarray(jax.jacfwd(residuals)(y), dtype=np.float64)
+    r = np.asarray(residuals(y), dtype=np.float64)
+    dof = max(r.size - y.size, 1)
+    s2 = float(r @ r) / dof
+    JtJ = J.T @ J
+    warnings = []
+    try:
+        cond = np.linalg.cond(JtJ)
+        cov_log = s2 * np.linalg.inv(JtJ)
+        if not np.isfinite(cond) or cond > 1e12:
+            warnings.append(
+                f"the covariance is near-singular (condition number {cond:.2g}): some "
+                "parameters are not identifiable from this target; their errors are unreliable"
+            )
+    except np.linalg.LinAlgError:
+        cov_log = np.full((y.size, y.size), np.inf)
+        warnings.append("J^T J is singular: the parameters are not identifiable from this target")
+    vals = np.exp(np.asarray(y, dtype=np.float64))
+    sd_log = np.sqrt(np.clip(np.diag(cov_log), 0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov_log / np.outer(sd_log, sd_log)
+    fields = {f for _, f in free}
+    if "sigma_s" in fields and not scene.sss.single_scattering:
+        warnings.append(
+            "sigma_s is free but single scattering is off: the dipole sees only "
+            "sigmap_s = sigma_s (1 - g)"
+        )
+    fitted = {n: m for n, m in zip(order, media_of(jnp.asarray(y)), strict=True)}
+    return FitResult(
+        names=names,
+        values=dict(zip(names, vals.tolist(), strict=True)),
+        stderr=dict(zip(names, (vals * sd_log).tolist(), strict=True)),
+        initial=dict(zip(names, np.exp(np.asarray(y0)).tolist(), strict=True)),
+        correlation=np.nan_to_num(corr).tolist(),
+        media=fitted,
+        steps=n,
+        loss_initial=loss0,
+        loss_final=float(loss_fn(y)),
+        status=status,
+        message=message,
+        converged=bool(converged),
+        wall_time_s=time.perf_counter() - t_start,
+        trace_time_s=trace_time,
+        history=history,
+        warnings=warnings,
+    )
+
+
+def _sss_view(tr):
+    from .trace import SSSBlock
+
+    return SSSBlock(
+        ms_hist=tr.ms_hist,
+        ss_mat=tr.ss_mat,
+        ss_sp_o=tr.ss_sp_o,
+        ss_sp_i=tr.ss_sp_i,
+        ss_cos_i=tr.ss_cos_i,
+        ss_cos_o=tr.ss_cos_o,
+        ss_cos_phase=tr.ss_cos_phase,
+        ss_pdf=tr.ss_pdf,
+        ss_weight=tr.ss_weight,
+    )
+
+
+def _progress_line(step: int, loss: float, names: list[str], vals: np.ndarray) -> None:
+    shown = "  ".join(f"{n.split('.', 1)[-1]}={v:.4g}" for n, v in zip(names, vals, strict=True))
+    print(f"step {step:3d}  loss {loss:.6g}  {shown}", file=sys.stderr, flush=True)
