@@ -144,6 +144,52 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_fit(args: argparse.Namespace) -> int:
+    from .fit import fit, load_fit_file
+    from .imageio import read_image, write_image
+    from .plots import convergence_plot, fit_triptych
+    from .render import render
+
+    job = load_fit_file(args.fit_file)
+    out = Path(args.output) if args.output else job.output
+    if job.target is not None and out.resolve() == job.target.resolve().parent:
+        raise UserError(f"refusing to write results into the target's folder {out}")
+    if (out / "result.json").exists() and not args.force:
+        raise UserError(f"{out / 'result.json'} exists; use --force to overwrite or -o DIR")
+    scene = job.scene
+    if job.target is None:
+        print(f"rendering a synthetic target (seed {job.synthetic_seed}) from the scene's media")
+        target = render(scene, job.synthetic_seed)
+    else:
+        target = read_image(job.target) if job.target.exists() else job.target
+    res = fit(
+        scene,
+        target,
+        params=job.params,
+        init=job.init,
+        seed=job.seed,
+        solver=job.method,
+        max_steps=job.max_steps,
+        rtol=job.rtol,
+        atol=job.atol,
+        progress=True,
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    fitted = render(scene, job.seed, media=res.media)
+    write_image(out / "fit.exr", fitted)
+    write_image(out / "fit.png", fitted)
+    _, psnr, ssim = fit_triptych(np.asarray(target), fitted, out / "triptych.png")
+    convergence_plot(res.history, res.names, out / "convergence.png")
+    res.to_json(out / "result.json")
+    print(res.summary())
+    print(
+        f"PSNR {psnr:.2f} dB, SSIM {ssim:.4f} (fit vs target); wall {res.wall_time_s:.1f} s "
+        f"(trace {res.trace_time_s:.1f} s)"
+    )
+    print(f"wrote {out.resolve()}/{{result.json, fit.exr, fit.png, triptych.png, convergence.png}}")
+    return 0 if res.converged else 1
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .plots import plot_profiles
     from .scene import load_scene
@@ -214,6 +260,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--tonemap", default="clip", choices=["clip", "reinhard", "aces"], help="PNG tone mapping"
     )
     s.set_defaults(func=_cmd_render)
+
+    s = sub.add_parser("fit", help="fit scattering coefficients to a target (a fit file)")
+    s.add_argument("fit_file", help="fit TOML file (see fits/)")
+    s.add_argument("-o", "--output", help="output folder (default: the fit file's 'output')")
+    s.add_argument("--force", action="store_true", help="overwrite an existing result")
+    s.set_defaults(func=_cmd_fit)
     return p
 
 
@@ -222,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (UserError, ValueError, FileNotFoundError) as e:
+    except (UserError, ValueError, FileNotFoundError, OSError) as e:
         print(f"sssjax: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

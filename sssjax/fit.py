@@ -13,6 +13,7 @@ Coefficients in mm^-1.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import sys
 import time
@@ -235,65 +236,49 @@ def fit(
     )
     target_j = jnp.asarray((tgt_flat - base) / scale)
     order = transport.materials
-    r_nodes = transport.r_nodes
-
-    def media_of(y):
-        logs = {k: y[3 * i : 3 * i + 3] for i, k in enumerate(free)}
-        out = []
-        for mat in order:
-            m = media0[mat]
-            sa = jnp.exp(logs[(mat, "sigma_a")]) if (mat, "sigma_a") in logs else m.sigma_a
-            if (mat, "sigmap_s") in logs:
-                ss = jnp.exp(logs[(mat, "sigmap_s")]) / (1.0 - m.g)
-            elif (mat, "sigma_s") in logs:
-                ss = jnp.exp(logs[(mat, "sigma_s")])
-            else:
-                ss = m.sigma_s
-            out.append(Medium(sa, ss, m.g, m.eta))
-        return tuple(out)
-
-    def residuals(y, args=None):
-        L = shade_sss(sub, media_of(y), r_nodes)
-        return (L / scale - target_j).reshape(-1)
-
+    args = (sub, target_j, transport.r_nodes, tuple(media0[m] for m in order), scale)
+    free_t = tuple(free)
+    residuals = _residual_fn(free_t, order)
     y0 = jnp.asarray(np.log(np.concatenate([start[k] for k in free])))
     names = [f"{m}.{f}.{_CH[c]}" for m, f in free for c in range(3)]
     history: list[dict[str, Any]] = []
 
     if solver in ("lm", "gn"):
         slv = (optx.LevenbergMarquardt if solver == "lm" else optx.GaussNewton)(rtol, atol)
-        fn = lambda y, args: (residuals(y), None)  # noqa: E731
         options = {"jac": "fwd"}
     elif solver == "bfgs":
         slv = optx.BFGS(rtol, atol)
-        fn = lambda y, args: (0.5 * jnp.sum(residuals(y) ** 2), None)  # noqa: E731
         options = {}
     else:
         raise FitError(f"unknown solver {solver!r} (known: lm, gn, bfgs)")
+    fn = _solver_fn(free_t, order, solver == "bfgs")
 
-    tags = frozenset()
-    f_struct, aux_struct = jax.eval_shape(lambda: fn(y0, None))
-    step = eqx.filter_jit(lambda y, s: slv.step(fn, y, None, options, s, tags))
-    terminate = eqx.filter_jit(lambda y, s: slv.terminate(fn, y, None, options, s, tags))
-    loss_fn = jax.jit(lambda y: 0.5 * jnp.sum(residuals(y) ** 2))
-    state = slv.init(fn, y0, None, options, f_struct, aux_struct, tags)
+    state = _init(slv, fn, y0, args, options)
     y = y0
-    loss0 = float(loss_fn(y0))
+    loss0 = float(_loss(residuals, y0, args))
     history.append({"step": 0, "loss": loss0, "params": np.exp(np.asarray(y0)).tolist()})
     if progress:
         _progress_line(0, loss0, names, np.exp(np.asarray(y0)))
     result = optx.RESULTS.max_steps_reached
+    stalled = False
     n = 0
     for n in range(1, max_steps + 1):
-        y, state, _ = step(y, state)
-        done, res = terminate(y, state)
-        loss = float(loss_fn(y))
+        y, state, done, res, loss = _step(slv, fn, residuals, y, args, options, state)
+        loss = float(loss)
         history.append({"step": n, "loss": loss, "params": np.exp(np.asarray(y)).tolist()})
         if progress:
             _progress_line(n, loss, names, np.exp(np.asarray(y)))
         if bool(done):
             result = res
             break
+        # float32 shading puts a floor under the loss; optimistix's Cauchy test may keep
+        # taking rejected LM steps there. Stop once the loss has stalled after progress.
+        if n >= 3 and loss < 0.5 * loss0:
+            recent = [h["loss"] for h in history[-4:]]
+            if max(recent) - min(recent) <= rtol * max(recent):
+                result = optx.RESULTS.successful
+                stalled = True
+                break
     converged = result == optx.RESULTS.successful
     status = (
         "successful"
@@ -301,12 +286,14 @@ def fit(
         else ("max_steps_reached" if result == optx.RESULTS.max_steps_reached else "failed")
     )
     message = optx.RESULTS[result] if not converged else "converged"
+    if stalled:
+        message = "converged (loss unchanged to rtol over the last 3 steps)"
     if not converged and not message:
         message = f"no convergence within {max_steps} steps"
 
     # uncertainty: Gauss-Newton covariance at the solution, in log space, then delta method
-    J = np.asarray(jax.jacfwd(residuals)(y), dtype=np.float64)
-    r = np.asarray(residuals(y), dtype=np.float64)
+    J, r = _jac_res(residuals, y, args)
+    J, r = np.asarray(J, dtype=np.float64), np.asarray(r, dtype=np.float64)
     dof = max(r.size - y.size, 1)
     s2 = float(r @ r) / dof
     JtJ = J.T @ J
@@ -332,7 +319,7 @@ def fit(
             "sigma_s is free but single scattering is off: the dipole sees only "
             "sigmap_s = sigma_s (1 - g)"
         )
-    fitted = {n: m for n, m in zip(order, media_of(jnp.asarray(y)), strict=True)}
+    fitted = dict(zip(order, _media_of(free_t, order, jnp.asarray(y), args[3]), strict=True))
     return FitResult(
         names=names,
         values=dict(zip(names, vals.tolist(), strict=True)),
@@ -342,7 +329,7 @@ def fit(
         media=fitted,
         steps=n,
         loss_initial=loss0,
-        loss_final=float(loss_fn(y)),
+        loss_final=float(_loss(residuals, y, args)),
         status=status,
         message=message,
         converged=bool(converged),
@@ -351,6 +338,65 @@ def fit(
         history=history,
         warnings=warnings,
     )
+
+
+def _media_of(free, order, y, media0):
+    """Media with the free coefficients set from log-parameters `y` (3 per free field)."""
+    logs = {k: y[3 * i : 3 * i + 3] for i, k in enumerate(free)}
+    out = []
+    for mat, m in zip(order, media0, strict=True):
+        sa = jnp.exp(logs[(mat, "sigma_a")]) if (mat, "sigma_a") in logs else m.sigma_a
+        if (mat, "sigmap_s") in logs:
+            ss = jnp.exp(logs[(mat, "sigmap_s")]) / (1.0 - m.g)
+        elif (mat, "sigma_s") in logs:
+            ss = jnp.exp(logs[(mat, "sigma_s")])
+        else:
+            ss = m.sigma_s
+        out.append(Medium(sa, ss, m.g, m.eta))
+    return tuple(out)
+
+
+# The residual and solver functions are cached per parameter layout, and the data travel as
+# `args`, so a second fit of the same layout reuses the compiled step.
+@functools.lru_cache(maxsize=32)
+def _residual_fn(free, order):
+    def residuals(y, args):
+        sub, target_j, r_nodes, media0, scale = args
+        L = shade_sss(sub, _media_of(free, order, y, media0), r_nodes)
+        return (L / scale - target_j).reshape(-1)
+
+    return residuals
+
+
+@functools.lru_cache(maxsize=32)
+def _solver_fn(free, order, scalar: bool):
+    residuals = _residual_fn(free, order)
+    if scalar:
+        return lambda y, args: (0.5 * jnp.sum(residuals(y, args) ** 2), None)
+    return lambda y, args: (residuals(y, args), None)
+
+
+@eqx.filter_jit
+def _loss(residuals, y, args):
+    return 0.5 * jnp.sum(residuals(y, args) ** 2)
+
+
+@eqx.filter_jit
+def _jac_res(residuals, y, args):
+    return jax.jacfwd(residuals)(y, args), residuals(y, args)
+
+
+@eqx.filter_jit
+def _init(slv, fn, y0, args, options):
+    f_struct, aux_struct = jax.eval_shape(lambda: fn(y0, args))
+    return slv.init(fn, y0, args, options, f_struct, aux_struct, frozenset())
+
+
+@eqx.filter_jit
+def _step(slv, fn, residuals, y, args, options, state):
+    y, state, _ = slv.step(fn, y, args, options, state, frozenset())
+    done, res = slv.terminate(fn, y, args, options, state, frozenset())
+    return y, state, done, res, 0.5 * jnp.sum(residuals(y, args) ** 2)
 
 
 def _sss_view(tr):
@@ -372,3 +418,94 @@ def _sss_view(tr):
 def _progress_line(step: int, loss: float, names: list[str], vals: np.ndarray) -> None:
     shown = "  ".join(f"{n.split('.', 1)[-1]}={v:.4g}" for n, v in zip(names, vals, strict=True))
     print(f"step {step:3d}  loss {loss:.6g}  {shown}", file=sys.stderr, flush=True)
+
+
+# --- fit files (`sssjax fit FIT.toml`) -------------------------------------------------
+_FIT_KEYS = {"scene", "target", "synthetic", "params", "init", "settings", "solver", "output"}
+_SOLVER_KEYS = {"method", "max_steps", "seed", "rtol", "atol"}
+_SYNTH_KEYS = {"seed"}
+
+
+@dataclasses.dataclass
+class FitJob:
+    """A parsed fit file: everything `fit` needs, plus where results go."""
+
+    path: Path
+    scene: Scene
+    target: Any  # a path, or None for a synthetic target
+    synthetic_seed: int | None
+    params: list[str] | None
+    init: dict[str, Any]
+    method: str
+    max_steps: int
+    seed: int | None
+    rtol: float
+    atol: float
+    output: Path
+
+
+def load_fit_file(path: str | Path) -> FitJob:
+    """Read and validate a fit file (TOML). Relative paths resolve against its folder.
+
+    Keys: `scene` (path), `target` (image path) or `[synthetic] seed = S` (render the target
+    from the scene's own media with seed S: a recovery check), `params` (list), `[init]`
+    (values in mm^-1 by `MATERIAL.FIELD`), `[settings]` (scene overrides: `width`, `height`,
+    `spp`, `light_samples`, `sss_cloud_size`, ...), `[solver]` (`method` lm|gn|bfgs,
+    `max_steps`, `seed`, `rtol`, `atol`), `output` (folder).
+    """
+    import difflib
+    import tomllib
+
+    from .scene import load_scene
+
+    path = Path(path)
+    if not path.exists():
+        raise FitError(f"{path}: fit file not found")
+    try:
+        d = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise FitError(f"{path}: not valid TOML: {e}") from None
+
+    def unknown(keys, known, where):
+        for k in keys:
+            if k not in known:
+                close = difflib.get_close_matches(k, sorted(known), n=1)
+                hint = f"; did you mean '{close[0]}'?" if close else ""
+                raise FitError(f"{path}: {where}{k}: unknown key{hint}")
+
+    unknown(d, _FIT_KEYS, "")
+    if "scene" not in d:
+        raise FitError(f"{path}: scene: missing required key")
+    if ("target" in d) == ("synthetic" in d):
+        raise FitError(f"{path}: give exactly one of 'target' (an image) and [synthetic]")
+    base = path.parent
+    scene = load_scene(base / d["scene"])
+    settings = d.get("settings", {})
+    try:
+        scene = scene.with_settings(**settings) if settings else scene
+    except TypeError as e:
+        raise FitError(f"{path}: [settings]: {e}") from None
+    solver = d.get("solver", {})
+    unknown(solver, _SOLVER_KEYS, "[solver] ")
+    synth = d.get("synthetic")
+    if synth is not None:
+        unknown(synth, _SYNTH_KEYS, "[synthetic] ")
+    params = d.get("params")
+    if params is not None and (
+        not isinstance(params, list) or not all(isinstance(p, str) for p in params)
+    ):
+        raise FitError(f"{path}: params: expected a list of names like 'marble.sigma_a'")
+    return FitJob(
+        path=path,
+        scene=scene,
+        target=(base / d["target"]) if "target" in d else None,
+        synthetic_seed=int(synth.get("seed", 1)) if synth is not None else None,
+        params=params,
+        init=dict(d.get("init", {})),
+        method=str(solver.get("method", "lm")),
+        max_steps=int(solver.get("max_steps", 50)),
+        seed=solver.get("seed"),
+        rtol=float(solver.get("rtol", 1e-5)),
+        atol=float(solver.get("atol", 1e-6)),
+        output=Path(d["output"]) if "output" in d else Path("out") / "fits" / path.stem,
+    )

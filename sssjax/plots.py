@@ -54,3 +54,67 @@ def plot_profiles(names: Sequence[str], path: str | Path, r_max_mm: float = 20.0
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def fit_triptych(
+    target: np.ndarray, fitted: np.ndarray, path: str | Path
+) -> tuple[Path, float, float]:
+    """Target | fit | residual picture with PSNR and SSIM of the fit against the target.
+
+    Images are compared after the same display mapping (scaled by the target's 99.5th
+    percentile, sRGB-encoded), which is what a person sees.
+
+    **Returns:** `(path, psnr_db, ssim)`.
+    """
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+    from .imageio import srgb_encode
+
+    plt = _pyplot()
+    s = float(np.percentile(target, 99.5)) or 1.0
+    t_disp = srgb_encode(np.clip(target / s, 0, 1))
+    f_disp = srgb_encode(np.clip(fitted / s, 0, 1))
+    psnr = float(peak_signal_noise_ratio(t_disp, f_disp, data_range=1.0))
+    ssim = float(structural_similarity(t_disp, f_disp, data_range=1.0, channel_axis=2))
+    resid = np.abs(fitted - target).sum(axis=2) / s
+    fig, ax = plt.subplots(1, 3, figsize=(12, 4.2))
+    ax[0].imshow(t_disp)
+    ax[0].set_title("target")
+    ax[1].imshow(f_disp)
+    ax[1].set_title(f"fit  (PSNR {psnr:.1f} dB, SSIM {ssim:.4f})")
+    im = ax[2].imshow(resid, cmap="magma")
+    ax[2].set_title("|fit - target| (sum RGB, / display white)")
+    fig.colorbar(im, ax=ax[2], fraction=0.046)
+    for a in ax:
+        a.axis("off")
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path, psnr, ssim
+
+
+def convergence_plot(history: list[dict], names: list[str], path: str | Path) -> Path:
+    """Loss (log) and every parameter relative to its final value, against the step."""
+    plt = _pyplot()
+    steps = [h["step"] for h in history]
+    loss = [max(h["loss"], 1e-30) for h in history]
+    params = np.array([h["params"] for h in history])
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    ax[0].semilogy(steps, loss, "o-")
+    ax[0].set_xlabel("step")
+    ax[0].set_ylabel("loss (0.5 sum r^2)")
+    ax[0].grid(True, which="both", alpha=0.3)
+    for i, n in enumerate(names):
+        c = _RGB["RGB".index(n[-1])] if n[-1] in "RGB" else None
+        ls = "-" if ".sigma_a." in n else "--"
+        ax[1].plot(steps, params[:, i] / params[-1, i], ls, color=c, label=n)
+    ax[1].set_xlabel("step")
+    ax[1].set_ylabel("parameter / final value")
+    ax[1].grid(True, alpha=0.3)
+    ax[1].legend(fontsize=7)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
