@@ -100,3 +100,49 @@ def test_non_convergence_is_reported(scene_and_target):
     m = scene.media()["marble"]
     res = fit(scene, target, init={"sigma_a": np.asarray(m.sigma_a) * 8}, max_steps=1)
     assert not res.converged and res.status == "max_steps_reached"
+
+
+def test_fit_cli_writes_results_and_refuses_to_overwrite(tmp_path, capsys):
+    from sssjax.cli import main
+
+    fit_file = tmp_path / "f.toml"
+    out = tmp_path / "res"
+    fit_file.write_text(
+        f"""
+scene = "{ROOT / 'scenes' / 'marble_cube.toml'}"
+output = "{out}"
+[synthetic]
+seed = 0
+[settings]
+width = 16
+height = 16
+spp = 1
+sss_cloud_size = 256
+[init]
+"marble.sigma_a" = [0.0042, 0.0082, 0.0142]
+[solver]
+seed = 0
+"""
+    )
+    assert main(["fit", str(fit_file)]) == 0
+    printed = capsys.readouterr()
+    assert "step   1" in printed.err  # one progress line per step
+    for name in ("result.json", "fit.exr", "fit.png", "triptych.png", "convergence.png"):
+        assert (out / name).exists(), name
+    d = json.loads((out / "result.json").read_text())
+    np.testing.assert_allclose(
+        [d["values"][f"marble.sigma_a.{c}"] for c in "RGB"], [0.0021, 0.0041, 0.0071], rtol=0.01
+    )
+    before = (out / "result.json").read_text()
+    assert main(["fit", str(fit_file)]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert (out / "result.json").read_text() == before
+
+
+def test_fit_file_typo(tmp_path, capsys):
+    from sssjax.cli import main
+
+    f = tmp_path / "f.toml"
+    f.write_text('scene = "x.toml"\nparms = ["sigma_a"]\n')
+    assert main(["fit", str(f)]) == 2
+    assert "parms: unknown key; did you mean 'params'?" in capsys.readouterr().err
