@@ -109,7 +109,7 @@ def test_fit_cli_writes_results_and_refuses_to_overwrite(tmp_path, capsys):
     out = tmp_path / "res"
     fit_file.write_text(
         f"""
-scene = "{ROOT / 'scenes' / 'marble_cube.toml'}"
+scene = "{ROOT / "scenes" / "marble_cube.toml"}"
 output = "{out}"
 [synthetic]
 seed = 0
