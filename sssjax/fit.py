@@ -232,7 +232,7 @@ def fit(
     scale = float(np.mean(np.abs(tgt_flat))) or 1.0  # residuals in units of the mean level
     sub = jax.tree_util.tree_map(
         lambda a: a[:, rows_sel] if a.ndim == 4 else a[rows_sel],
-        _sss_view(transport),
+        transport.sss_terms(),
     )
     target_j = jnp.asarray((tgt_flat - base) / scale)
     order = transport.materials
@@ -397,22 +397,6 @@ def _step(slv, fn, residuals, y, args, options, state):
     y, state, _ = slv.step(fn, y, args, options, state, frozenset())
     done, res = slv.terminate(fn, y, args, options, state, frozenset())
     return y, state, done, res, 0.5 * jnp.sum(residuals(y, args) ** 2)
-
-
-def _sss_view(tr):
-    from .trace import SSSBlock
-
-    return SSSBlock(
-        ms_hist=tr.ms_hist,
-        ss_mat=tr.ss_mat,
-        ss_sp_o=tr.ss_sp_o,
-        ss_sp_i=tr.ss_sp_i,
-        ss_cos_i=tr.ss_cos_i,
-        ss_cos_o=tr.ss_cos_o,
-        ss_cos_phase=tr.ss_cos_phase,
-        ss_pdf=tr.ss_pdf,
-        ss_weight=tr.ss_weight,
-    )
 
 
 def _progress_line(step: int, loss: float, names: list[str], vals: np.ndarray) -> None:

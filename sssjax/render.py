@@ -20,7 +20,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from .media import Medium
 from .scene import Scene
 from .shade import shade_image, shade_sss
-from .trace import SceneTracer, Transport
+from .trace import SSS_FIELDS, SceneTracer, Transport
 
 __all__ = ["render", "trace_tiles", "Renderer", "renderer_for", "as_key"]
 
@@ -226,18 +226,9 @@ class Renderer:
 
 
 def _take_block(out, i: int, valid: np.ndarray) -> dict:
+    """Block `i` of a batch of `SSSBlock`s, keeping its `valid` rows."""
     d = {}
-    for f in (
-        "ms_hist",
-        "ss_mat",
-        "ss_sp_o",
-        "ss_sp_i",
-        "ss_cos_i",
-        "ss_cos_o",
-        "ss_cos_phase",
-        "ss_pdf",
-        "ss_weight",
-    ):
+    for f in SSS_FIELDS:
         a = getattr(out, f)[i]
         d[f] = a[:, valid] if f == "ms_hist" else a[valid]
     return d

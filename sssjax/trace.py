@@ -76,6 +76,10 @@ class Transport(eqx.Module):
     def num_pixels(self) -> int:
         return self.pixels.shape[0]
 
+    def sss_terms(self) -> SSSBlock:
+        """The subsurface fields (rows `t_rows`) as an `SSSBlock`."""
+        return SSSBlock(**{f: getattr(self, f) for f in SSS_FIELDS})
+
     def translucent_pixels(self) -> Array:
         """Flat pixel indices of the rows with subsurface terms."""
         return self.pixels[self.t_rows]
@@ -93,6 +97,19 @@ class SSSBlock(eqx.Module):
     ss_cos_phase: Float[Array, "P K"]
     ss_pdf: Float[Array, "P K"]
     ss_weight: Float[Array, "P K 3"]
+
+
+SSS_FIELDS = (
+    "ms_hist",
+    "ss_mat",
+    "ss_sp_o",
+    "ss_sp_i",
+    "ss_cos_i",
+    "ss_cos_o",
+    "ss_cos_phase",
+    "ss_pdf",
+    "ss_weight",
+)  # the fields shared by `SSSBlock` and `Transport`
 
 
 # per-sample state at the first translucent vertex of each path, output of the chain phase
