@@ -196,22 +196,11 @@ class Renderer:
             }
             t_rows = np.concatenate(rows_all)
         else:
-            cat = dict(
-                ms_hist=np.zeros((Mt, 0, B, 3), np.float32),
-                ss_mat=np.zeros((0, K), np.int32),
-                **{
-                    f: np.zeros((0, K), np.float32)
-                    for f in (
-                        "ss_sp_o",
-                        "ss_sp_i",
-                        "ss_cos_i",
-                        "ss_cos_o",
-                        "ss_cos_phase",
-                        "ss_pdf",
-                    )
-                },
-                ss_weight=np.zeros((0, K, 3), np.float32),
-            )
+            shapes = {"ms_hist": (Mt, 0, B, 3), "ss_weight": (0, K, 3)}
+            cat = {
+                f: np.zeros(shapes.get(f, (0, K)), np.int32 if f == "ss_mat" else np.float32)
+                for f in SSS_FIELDS
+            }
             t_rows = np.zeros(0, np.int64)
         return Transport(
             pixels=jnp.asarray(np.concatenate(pix_all)),
