@@ -172,6 +172,8 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         max_steps=job.max_steps,
         rtol=job.rtol,
         atol=job.atol,
+        loss=job.loss,
+        loss_scale=job.loss_scale,
         progress=True,
     )
     out.mkdir(parents=True, exist_ok=True)

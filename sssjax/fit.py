@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ._numerics import safe_sqrt
 from .media import Medium
 from .render import as_key, renderer_for
 from .scene import Scene
@@ -168,6 +169,8 @@ def fit(
     max_steps: int = 50,
     rtol: float = 1e-5,
     atol: float = 1e-6,
+    loss: str = "l2",
+    loss_scale: float = 0.1,
     progress: bool = False,
 ) -> FitResult:
     """Recover scattering coefficients of the scene's translucent materials from `target`.
@@ -185,6 +188,9 @@ def fit(
     - `seed`: trace seed (default the scene's).
     - `solver`: `"lm"` (Levenberg-Marquardt), `"gn"` (Gauss-Newton) or `"bfgs"` (on the
       scalar loss).
+    - `loss`: `"l2"`, or a robust `"cauchy"` / `"huber"` for photographs with outliers
+      (specular highlights, dust); `loss_scale` is their transition, in units of the target's
+      mean level over the fitted pixels. Error bars then come from the transformed residuals.
 
     **Returns:** a `FitResult`. A fit that fails to converge says so in `status`/`message`.
     """
@@ -236,9 +242,20 @@ def fit(
     )
     target_j = jnp.asarray((tgt_flat - base) / scale)
     order = transport.materials
-    args = (sub, target_j, transport.r_nodes, tuple(media0[m] for m in order), scale)
+    args = (
+        sub,
+        target_j,
+        transport.r_nodes,
+        tuple(media0[m] for m in order),
+        scale,
+        jnp.asarray(loss_scale, dtype=target_j.dtype),
+    )
     free_t = tuple(free)
-    residuals = _residual_fn(free_t, order)
+    if loss not in ("l2", "cauchy", "huber"):
+        raise FitError(f"unknown loss {loss!r} (known: l2, cauchy, huber)")
+    if not loss_scale > 0:
+        raise FitError(f"loss_scale must be > 0, got {loss_scale}")
+    residuals = _residual_fn(free_t, order, loss)
     y0 = jnp.asarray(np.log(np.concatenate([start[k] for k in free])))
     names = [f"{m}.{f}.{_CH[c]}" for m, f in free for c in range(3)]
     history: list[dict[str, Any]] = []
@@ -251,7 +268,7 @@ def fit(
         options = {}
     else:
         raise FitError(f"unknown solver {solver!r} (known: lm, gn, bfgs)")
-    fn = _solver_fn(free_t, order, solver == "bfgs")
+    fn = _solver_fn(free_t, order, solver == "bfgs", loss)
 
     state = _init(slv, fn, y0, args, options)
     y = y0
@@ -359,18 +376,26 @@ def _media_of(free, order, y, media0):
 # The residual and solver functions are cached per parameter layout, and the data travel as
 # `args`, so a second fit of the same layout reuses the compiled step.
 @functools.lru_cache(maxsize=32)
-def _residual_fn(free, order):
+def _residual_fn(free, order, loss: str = "l2"):
     def residuals(y, args):
-        sub, target_j, r_nodes, media0, scale = args
+        sub, target_j, r_nodes, media0, scale, c = args
         L = shade_sss(sub, _media_of(free, order, y, media0), r_nodes)
-        return (L / scale - target_j).reshape(-1)
+        r = (L / scale - target_j).reshape(-1)
+        # robust losses as residual transforms r -> sign(r) sqrt(2 rho(r)): least squares on
+        # the transformed residuals minimises sum rho(r)
+        if loss == "cauchy":
+            return jnp.sign(r) * c * safe_sqrt(jnp.log1p((r / c) ** 2))
+        if loss == "huber":
+            a = jnp.abs(r)
+            return jnp.where(a <= c, r, jnp.sign(r) * safe_sqrt(2 * c * a - c**2))
+        return r
 
     return residuals
 
 
 @functools.lru_cache(maxsize=32)
-def _solver_fn(free, order, scalar: bool):
-    residuals = _residual_fn(free, order)
+def _solver_fn(free, order, scalar: bool, loss: str = "l2"):
+    residuals = _residual_fn(free, order, loss)
     if scalar:
         return lambda y, args: (0.5 * jnp.sum(residuals(y, args) ** 2), None)
     return lambda y, args: (residuals(y, args), None)
@@ -406,7 +431,7 @@ def _progress_line(step: int, loss: float, names: list[str], vals: np.ndarray) -
 
 # --- fit files (`sssjax fit FIT.toml`) -------------------------------------------------
 _FIT_KEYS = {"scene", "target", "synthetic", "params", "init", "settings", "solver", "output"}
-_SOLVER_KEYS = {"method", "max_steps", "seed", "rtol", "atol"}
+_SOLVER_KEYS = {"method", "max_steps", "seed", "rtol", "atol", "loss", "loss_scale"}
 _SYNTH_KEYS = {"seed"}
 
 
@@ -426,6 +451,8 @@ class FitJob:
     rtol: float
     atol: float
     output: Path
+    loss: str = "l2"
+    loss_scale: float = 0.1
 
 
 def load_fit_file(path: str | Path) -> FitJob:
@@ -435,7 +462,7 @@ def load_fit_file(path: str | Path) -> FitJob:
     from the scene's own media with seed S: a recovery check), `params` (list), `[init]`
     (values in mm^-1 by `MATERIAL.FIELD`), `[settings]` (scene overrides: `width`, `height`,
     `spp`, `light_samples`, `sss_cloud_size`, ...), `[solver]` (`method` lm|gn|bfgs,
-    `max_steps`, `seed`, `rtol`, `atol`), `output` (folder).
+    `max_steps`, `seed`, `rtol`, `atol`, `loss` l2|cauchy|huber, `loss_scale`), `output` (folder).
     """
     import difflib
     import tomllib
@@ -492,4 +519,6 @@ def load_fit_file(path: str | Path) -> FitJob:
         rtol=float(solver.get("rtol", 1e-5)),
         atol=float(solver.get("atol", 1e-6)),
         output=Path(d["output"]) if "output" in d else Path("out") / "fits" / path.stem,
+        loss=str(solver.get("loss", "l2")),
+        loss_scale=float(solver.get("loss_scale", 0.1)),
     )

@@ -146,3 +146,29 @@ def test_fit_file_typo(tmp_path, capsys):
     f.write_text('scene = "x.toml"\nparms = ["sigma_a"]\n')
     assert main(["fit", str(f)]) == 2
     assert "parms: unknown key; did you mean 'params'?" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_robust_loss_ignores_outlier_pixels():
+    """2% of the translucent pixels replaced by bright outliers (a highlight, dust): the plain
+    fit is dragged off, the Cauchy fit still recovers the coefficients."""
+    scene = small("marble")
+    target = sssjax.render(scene, 0)
+    tr = sssjax.trace(scene, 0)
+    pix = np.asarray(tr.translucent_pixels())
+    rng = np.random.default_rng(0)
+    bad = rng.choice(pix, size=max(len(pix) // 50, 3), replace=False)
+    flat = target.reshape(-1, 3).copy()
+    flat[bad] = flat[bad] * 6 + 0.5
+    target_bad = flat.reshape(target.shape)
+    true = scene.media()["marble"]
+    init = {"sigma_a": np.asarray(true.sigma_a) * 2, "sigma_s": np.asarray(true.sigma_s) / 2}
+
+    def err(res):
+        got = np.array([res.values[f"marble.sigma_a.{c}"] for c in "RGB"])
+        return np.abs(got / np.asarray(true.sigma_a) - 1).max()
+
+    plain = fit(scene, target_bad, init=init, seed=0)
+    robust = fit(scene, target_bad, init=init, seed=0, loss="cauchy", loss_scale=0.05)
+    assert err(robust) < 0.01
+    assert err(plain) > 5 * err(robust)
