@@ -85,6 +85,8 @@ def scene_and_target():
         (dict(params=["wax.sigma_a"]), "no translucent material 'wax'"),
         (dict(params=["sigma_s", "sigmap_s"]), "not both"),
         (dict(solver="adam"), "unknown solver"),
+        (dict(traces=0), "traces must be"),
+        (dict(loss="l1"), "unknown loss"),
     ],
 )
 def test_bad_input(scene_and_target, kwargs, message):
