@@ -481,24 +481,15 @@ def load_fit_file(path: str | Path) -> FitJob:
     `spp`, `light_samples`, `sss_cloud_size`, ...), `[solver]` (`method` lm|gn|bfgs,
     `max_steps`, `seed`, `rtol`, `atol`, `loss` l2|cauchy|huber, `loss_scale`), `output` (folder).
     """
-    import difflib
-    import tomllib
-
-    from .scene import load_scene
+    from .scene import did_you_mean, load_scene, read_toml
 
     path = Path(path)
-    if not path.exists():
-        raise FitError(f"{path}: fit file not found")
-    try:
-        d = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise FitError(f"{path}: not valid TOML: {e}") from None
+    d = read_toml(path, FitError, "fit file")
 
     def unknown(keys, known, where):
         for k in keys:
             if k not in known:
-                close = difflib.get_close_matches(k, sorted(known), n=1)
-                hint = f"; did you mean '{close[0]}'?" if close else ""
+                hint = did_you_mean(k, sorted(known))
                 raise FitError(f"{path}: {where}{k}: unknown key{hint}")
 
     unknown(d, _FIT_KEYS, "")

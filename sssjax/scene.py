@@ -39,6 +39,24 @@ class SceneError(ValueError):
     """A problem in a scene description, reported as `FILE: [table] field: message`."""
 
 
+def did_you_mean(word: str, options) -> str:
+    """`"; did you mean 'x'?"` for the closest of `options` to `word`, or `""`."""
+    close = difflib.get_close_matches(str(word), list(options), n=1)
+    return f"; did you mean '{close[0]}'?" if close else ""
+
+
+def read_toml(path: Path, error: type[Exception], what: str) -> dict:
+    """Parse a TOML file; a missing, binary or malformed file raises `error` in one line."""
+    if not path.exists():
+        raise error(f"{path}: {what} not found")
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise error(f"{path}: not valid TOML: {e}") from None
+    except UnicodeDecodeError:
+        raise error(f"{path}: not a text file") from None
+
+
 # --- the parsed scene ------------------------------------------------------------------
 @dataclass(frozen=True)
 class Camera:
@@ -290,8 +308,7 @@ def _fields(ctx: _Ctx, data: Any, schema: dict) -> dict:
         raise ctx.err(None, f"expected a table, got {_fmt(data)}")
     for key in data:
         if key not in schema:
-            close = difflib.get_close_matches(key, list(schema), n=1)
-            hint = f"; did you mean '{close[0]}'?" if close else ""
+            hint = did_you_mean(key, list(schema))
             known = ", ".join(sorted(schema))
             raise ctx.err(key, f"unknown field{hint} (known fields: {known})")
     out = {}
@@ -387,8 +404,7 @@ def _kind(ctx: _Ctx, data: Any, kinds: dict, what: str) -> str:
         raise ctx.err("type", f"missing required field (one of: {', '.join(kinds)})")
     kind = data["type"]
     if kind not in kinds:
-        close = difflib.get_close_matches(str(kind), list(kinds), n=1)
-        hint = f"; did you mean '{close[0]}'?" if close else ""
+        hint = did_you_mean(str(kind), list(kinds))
         raise ctx.err("type", f"unknown {what} type {_fmt(kind)}{hint} (known: {', '.join(kinds)})")
     return kind
 
@@ -483,20 +499,12 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
     else:
         path = Path(source)
         file = str(path)
-        if not path.exists():
-            raise SceneError(f"{file}: scene file not found")
-        try:
-            data = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as e:
-            raise SceneError(f"{file}: not valid TOML: {e}") from None
-        except UnicodeDecodeError:
-            raise SceneError(f"{file}: not a text file") from None
+        data = read_toml(path, SceneError, "scene file")
         base = Path(base_dir) if base_dir is not None else path.parent
 
     for key in data:
         if key not in _TOP:
-            close = difflib.get_close_matches(key, _TOP, n=1)
-            hint = f"; did you mean '{close[0]}'?" if close else ""
+            hint = did_you_mean(key, _TOP)
             raise SceneError(f"{file}: unknown table [{key}]{hint} (known: {', '.join(_TOP)})")
     if "camera" not in data:
         raise SceneError(f"{file}: missing required table [camera]")
@@ -515,8 +523,7 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
     sctx = _Ctx(file, "sss")
     sss = SSSSettings(**_fields(sctx, data.get("sss", {}), _SSS))
     if sss.strategy not in _STRATEGIES:
-        close = difflib.get_close_matches(sss.strategy, _STRATEGIES, n=1)
-        hint = f"; did you mean '{close[0]}'?" if close else ""
+        hint = did_you_mean(sss.strategy, _STRATEGIES)
         raise sctx.err(
             "strategy", f"unknown strategy {sss.strategy!r}{hint} (known: {', '.join(_STRATEGIES)})"
         )
@@ -576,8 +583,7 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
         f = _fields(ctx, raw, {**_PLACEMENT, **_SHAPES[kind]})
         if f["material"] not in materials:
             known = ", ".join(materials) or "none defined"
-            close = difflib.get_close_matches(f["material"], list(materials), n=1)
-            hint = f"; did you mean '{close[0]}'?" if close else ""
+            hint = did_you_mean(f["material"], list(materials))
             raise ctx.err("material", f"no material named {f['material']!r}{hint} (known: {known})")
         params = {k: f[k] for k in _SHAPES[kind]}
         if kind == "quadmesh":
