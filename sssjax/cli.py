@@ -92,6 +92,19 @@ def render_to_files(
             for n, m in scene.media().items()
         },
     }
+    if scene.camera.projection == "orthographic":
+        meta["pixel_size_mm"] = scene.camera.pixel_size_mm
+    beams = [b for b in scene.lights if type(b).__name__ == "BeamLight"]
+    if beams:
+        meta["beams"] = [
+            {
+                "position": np.asarray(b.position).tolist(),
+                "direction": np.asarray(b.direction).tolist(),
+                "radius": float(b.radius),
+                "power": np.asarray(b.power).tolist(),
+            }
+            for b in beams
+        ]
     protect = _scene_inputs(scene)
     written = []
     for out in outputs:
@@ -192,6 +205,103 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     return 0 if res.converged else 1
 
 
+def _cmd_measure(args: argparse.Namespace) -> int:
+    import json
+
+    from .imageio import read_image, read_metadata
+    from .measure import find_center, fit_profile, image_to_reflectance, radial_profile
+    from .plots import measurement_plot
+
+    path = Path(args.image)
+    image = read_image(path)
+    meta = read_metadata(path)
+    if not np.all(np.isfinite(image)):
+        raise UserError(f"{path}: the image has NaN or infinite pixels")
+    if not np.any(image > 0):
+        raise UserError(f"{path}: the image is all black")
+    pixel = args.pixel_size if args.pixel_size is not None else meta.get("pixel_size_mm")
+    if pixel is None:
+        raise UserError(f"{path}: no pixel size in the image metadata: give --pixel-size MM")
+    if not pixel > 0:
+        raise UserError(f"--pixel-size must be > 0 mm, got {pixel:g}")
+    media = meta.get("media") or {}
+    eta = args.eta
+    if eta is None:
+        etas = {m.get("eta") for m in media.values()} if isinstance(media, dict) else set()
+        eta = etas.pop() if len(etas) == 1 else 1.3
+    if not eta > 0:
+        raise UserError(f"--eta must be > 0, got {eta:g}")
+    power = args.power
+    if power is None and not args.free_scale and len(meta.get("beams") or []) == 1:
+        power = meta["beams"][0]["power"]
+    free = args.free_scale or power is None
+    h, w = image.shape[:2]
+    center = tuple(args.center) if args.center else find_center(image)
+    if not (0 <= center[0] <= w and 0 <= center[1] <= h):
+        raise UserError(f"--center {center[0]:g} {center[1]:g} lies outside the {w}x{h} image")
+    R = image_to_reflectance(
+        image, eta, power, incidence_deg=args.incidence, view_deg=args.view_angle
+    )
+    prof = radial_profile(R, center, pixel, r_max_mm=args.r_max)
+    n_used = int(np.sum(prof.r >= args.r_min))
+    if n_used < 4:
+        raise UserError(
+            f"only {n_used} annuli beyond --r-min {args.r_min:g} mm (profile reaches "
+            f"{prof.r.max():.3g} mm): lower --r-min or give a larger image"
+        )
+    res = fit_profile(prof, eta, r_min=args.r_min, free_scale=free)
+    out = Path(args.output) if args.output else Path("out") / f"measure-{path.stem}"
+    if out.resolve() == path.resolve().parent:
+        raise UserError(f"refusing to write results into the image's folder {out}")
+    if (out / "measure.json").exists() and not args.force:
+        raise UserError(f"{out / 'measure.json'} exists; use --force to overwrite or -o DIR")
+    print(
+        f"{path}: {w}x{h} px, {pixel:.4g} mm/px, centre ({center[0]:.1f}, {center[1]:.1f}) px, "
+        f"eta {eta:g}, r {args.r_min:g}..{prof.r.max():.1f} mm, "
+        + ("free intensity scale" if free else f"beam power {np.ravel(power).tolist()} W")
+    )
+    print(f"{'ch':<3} {'sigma_a [1/mm]':>22} {'sigmap_s [1/mm]':>22} {'scale':>16}  steps")
+    for c in range(3):
+        sc = f"{res.scale[c]:.4g} +- {res.scale_stderr[c]:.2g}" if free else "1 (known)"
+        print(
+            f"{'RGB'[c]:<3} {res.sigma_a[c]:>11.5g} +- {res.sigma_a_stderr[c]:<8.2g} "
+            f"{res.sigmap_s[c]:>11.5g} +- {res.sigmap_s_stderr[c]:<8.2g} {sc:>16}  "
+            f"{res.steps[c]}{'' if res.converged[c] else ' (not converged)'}"
+        )
+    if free:
+        print(
+            "note: with a free scale sigma_a is set by the profile's shape alone; "
+            "its error bar says how well"
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    plot = measurement_plot(prof, res, eta, out / "profile.png", r_min=args.r_min)
+    result = {
+        "image": str(path),
+        "pixel_size_mm": pixel,
+        "center_px": list(center),
+        "eta": eta,
+        "r_min_mm": args.r_min,
+        "free_scale": free,
+        "units": "coefficients 1/mm",
+        **{
+            k: np.asarray(getattr(res, k)).tolist()
+            for k in (
+                "sigma_a",
+                "sigmap_s",
+                "scale",
+                "sigma_a_stderr",
+                "sigmap_s_stderr",
+                "scale_stderr",
+            )
+        },
+        "steps": res.steps,
+        "converged": res.converged,
+    }
+    (out / "measure.json").write_text(json.dumps(result, indent=2))
+    print(f"wrote {(out / 'measure.json').resolve()} and {plot.resolve()}")
+    return 0 if all(res.converged) else 1
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .plots import plot_profiles
     from .scene import load_scene
@@ -268,6 +378,29 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--output", help="output folder (default: the fit file's 'output')")
     s.add_argument("--force", action="store_true", help="overwrite an existing result")
     s.set_defaults(func=_cmd_fit)
+
+    s = sub.add_parser(
+        "measure",
+        help="fit sigma_a, sigmap_s (1/mm) to the radial profile of a beam-lit image "
+        "(Jensen's measurement step)",
+    )
+    s.add_argument("image", help="linear image (EXR/TIFF; PNG/JPEG are decoded from sRGB)")
+    s.add_argument(
+        "--pixel-size", type=float, help="mm per pixel on the sample (default: metadata)"
+    )
+    s.add_argument(
+        "--center", type=float, nargs=2, metavar=("X", "Y"), help="beam centre in pixels"
+    )
+    s.add_argument("--eta", type=float, help="relative index of refraction (default 1.3)")
+    s.add_argument("--power", type=float, help="beam power in W (default: metadata, else free)")
+    s.add_argument("--free-scale", action="store_true", help="fit an intensity scale too")
+    s.add_argument("--r-min", type=float, default=1.0, help="exclude r < R_MIN mm (1.0)")
+    s.add_argument("--r-max", type=float, help="largest radius, mm (default: image edge)")
+    s.add_argument("--incidence", type=float, default=0.0, help="beam angle from normal, deg")
+    s.add_argument("--view-angle", type=float, default=0.0, help="camera angle from normal")
+    s.add_argument("-o", "--output", help="output folder (default: out/measure-IMAGE)")
+    s.add_argument("--force", action="store_true", help="overwrite an existing result")
+    s.set_defaults(func=_cmd_measure)
     return p
 
 

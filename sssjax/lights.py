@@ -1,8 +1,12 @@
-"""Light sources as arrays: rectangular (parallelogram) area lights and point lights.
+"""Light sources as arrays: rectangular (parallelogram) area lights, point lights and
+collimated beams.
 
 Radiometry: an area light emits constant radiance `L_e` (W mm^-2 sr^-1) from its front side
-(along `edge_u x edge_v`); a point light has intensity `I` (W sr^-1). Irradiance at a point
-is estimated by stratified (jittered n x n) sampling of each area light with shadow rays.
+(along `edge_u x edge_v`); a point light has intensity `I` (W sr^-1); a beam of radius `R`
+carries power `P` (W) along its axis, so a surface inside it receives `P cos / (pi R^2)`.
+Irradiance at a point is estimated by stratified (jittered n x n) sampling of each area
+light with shadow rays. Beams are not seen by camera rays (a collimated beam has no
+radiance in any finite solid angle).
 """
 
 from __future__ import annotations
@@ -14,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .scene import AreaLight, PointLight
+from .scene import AreaLight, BeamLight, PointLight
 
 
 class LightArrays(eqx.Module):
@@ -28,11 +32,16 @@ class LightArrays(eqx.Module):
     radiance: Float[Array, "La 3"]
     position: Float[Array, "Lp 3"]
     intensity: Float[Array, "Lp 3"]
+    beam_origin: Float[Array, "Lb 3"]
+    beam_dir: Float[Array, "Lb 3"]
+    beam_radius: Float[Array, " Lb"]
+    beam_power: Float[Array, "Lb 3"]
 
     @classmethod
     def from_scene(cls, lights) -> LightArrays:
         area = [l for l in lights if isinstance(l, AreaLight)]
         point = [l for l in lights if isinstance(l, PointLight)]
+        beam = [l for l in lights if isinstance(l, BeamLight)]
 
         def stack(items, attr):
             if not items:
@@ -48,6 +57,10 @@ class LightArrays(eqx.Module):
             radiance=stack(area, "radiance"),
             position=stack(point, "position"),
             intensity=stack(point, "intensity"),
+            beam_origin=stack(beam, "position"),
+            beam_dir=stack(beam, "direction"),
+            beam_radius=jnp.asarray([l.radius for l in beam], dtype=float).reshape(-1),
+            beam_power=stack(beam, "power"),
         )
 
     @property
@@ -57,6 +70,18 @@ class LightArrays(eqx.Module):
     @property
     def n_point(self) -> int:
         return self.position.shape[0]
+
+    @property
+    def n_beam(self) -> int:
+        return self.beam_origin.shape[0]
+
+    def beam_frame(self, k: int) -> tuple[Array, Array]:
+        """Two unit vectors spanning the cross-section of beam `k`."""
+        d = self.beam_dir[k]
+        a = jnp.where(jnp.abs(d[0]) < 0.9, jnp.array([1.0, 0.0, 0.0]), jnp.array([0.0, 1.0, 0.0]))
+        e1 = jnp.cross(d, a)
+        e1 = e1 / jnp.linalg.norm(e1)
+        return e1, jnp.cross(d, e1)
 
     def intersect(self, o: Array, d: Array, t_max: Array) -> tuple[Array, Array]:
         """Nearest area-light hit before `t_max` along `o + t d`.
@@ -136,4 +161,32 @@ def direct_irradiance(
         f = transmit(cos_x) if transmit is not None else 1.0
         g = jnp.where((cos_x > 0) & vis, f * cos_x / dist2, 0.0)
         E = E + lights.intensity[k] * g[..., None]
+    return E
+
+
+def beam_irradiance(
+    lights: LightArrays,
+    x: Float[Array, "*b 3"],
+    n: Float[Array, "*b 3"],
+    occluded: Callable[[Array, Array, Array], Array],
+    transmit: Callable[[Array], Array] | None = None,
+) -> Float[Array, "*b 3"]:
+    """Irradiance `P cos / (pi R^2)` from every beam at points `x` inside it (W mm^-2), with
+    a shadow ray back towards the beam's source disc.
+
+    Used for diffuse surfaces. Translucent objects receive beams through the beam points of
+    the irradiance cloud instead (`trace`), which resolve a narrow beam exactly.
+    """
+    E = jnp.zeros(x.shape)
+    for k in range(lights.n_beam):
+        d = lights.beam_dir[k]
+        v = x - lights.beam_origin[k]
+        along = v @ d
+        radial = jnp.linalg.norm(v - along[..., None] * d, axis=-1)
+        inside = (along > 0) & (radial <= lights.beam_radius[k])
+        cos_x = -(n @ d)
+        vis = ~occluded(x + 1e-3 * n, jnp.broadcast_to(-d, x.shape), along * (1 - 1e-4))
+        f = transmit(cos_x) if transmit is not None else 1.0
+        g = jnp.where(inside & (cos_x > 0) & vis, f * cos_x, 0.0)
+        E = E + lights.beam_power[k] / (jnp.pi * lights.beam_radius[k] ** 2) * g[..., None]
     return E

@@ -200,3 +200,44 @@ def _grid_starts(r, logd, w, eta, free_scale, n_starts: int = 6):
         y = [jnp.log(sa[i]), jnp.log(sp[j])] + ([off[i, j, 0]] if free_scale else [])
         starts.append(jnp.asarray(y))
     return starts
+
+
+# --- from an image to coefficients: the `sssjax measure` step ---------------------------
+def find_center(image: np.ndarray) -> tuple[float, float]:
+    """The beam's entry point in pixel coordinates `(x, y)`: the intensity-weighted centroid
+    of the pixels brighter than half the maximum (of the channel sum).
+
+    **Arguments:** `image` `(H, W, 3)` linear. **Returns:** `(x, y)` (pixel centres at +0.5).
+    """
+    lum = np.asarray(image, dtype=np.float64).sum(axis=-1)
+    sel = lum >= 0.5 * lum.max()
+    ys, xs = np.nonzero(sel)
+    w = lum[ys, xs]
+    return float(np.sum((xs + 0.5) * w) / w.sum()), float(np.sum((ys + 0.5) * w) / w.sum())
+
+
+def image_to_reflectance(
+    image: np.ndarray,
+    eta: float,
+    power: float | np.ndarray | None = None,
+    *,
+    incidence_deg: float = 0.0,
+    view_deg: float = 0.0,
+) -> np.ndarray:
+    """Convert exitant radiance `L` to the units of `R_d` (mm^-2 per unit power entering).
+
+    The model behind it (and behind the renderer): `L = F_t(theta_o)/pi R_d(r) Phi` with
+    `Phi = P F_t(theta_i)` the beam power that enters. So
+    `R_d = pi L / (F_t(theta_o) F_t(theta_i) P)`. With `power=None` only the constant
+    factors are removed, and the fit must then free the scale.
+
+    **Arguments:** `image` `(H, W, 3)` linear radiance (W mm^-2 sr^-1); `eta` the sample's
+    relative index; `power` the beam power (W, scalar or RGB); `incidence_deg`, `view_deg`
+    the beam's and the camera's angles from the surface normal.
+    """
+    from .dipole import fresnel_transmittance
+
+    ft_i = float(fresnel_transmittance(np.cos(np.radians(incidence_deg)), eta))
+    ft_o = float(fresnel_transmittance(np.cos(np.radians(view_deg)), eta))
+    p = np.ones(3) if power is None else np.broadcast_to(np.asarray(power, float), (3,))
+    return np.asarray(image, np.float64) * np.pi / (ft_o * ft_i * p)

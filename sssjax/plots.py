@@ -118,3 +118,53 @@ def convergence_plot(history: list[dict], names: list[str], path: str | Path) ->
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
+
+
+def measurement_plot(profile, fit, eta: float, path: str | Path, *, r_min: float = 0.0) -> Path:
+    """The measured radial profile (points with error bars) against the fitted dipole
+    `scale R_d(r)` (lines), log scale per RGB channel, and the relative residual below.
+
+    **Arguments:** `profile` (`sssjax.measure.Profile` in `R_d` units), `fit`
+    (`ProfileFit`), `eta`, `path` of the PNG, `r_min` the excluded centre (mm, shaded).
+
+    **Returns:** the path written.
+    """
+    from .dipole import Rd
+
+    plt = _pyplot()
+    fig, (ax, axr) = plt.subplots(
+        2, 1, figsize=(7.0, 6.4), sharex=True, gridspec_kw={"height_ratios": [3, 1]}
+    )
+    r = np.asarray(profile.r)
+    rr = np.linspace(max(r.min(), 1e-3), r.max(), 400)
+    for c in range(3):
+        model = fit.scale[c] * np.asarray(Rd(rr, fit.sigma_a[c], fit.sigmap_s[c], eta))
+        at = fit.scale[c] * np.asarray(Rd(r, fit.sigma_a[c], fit.sigmap_s[c], eta))
+        ok = profile.mean[:, c] > 0
+        ax.errorbar(
+            r[ok], profile.mean[ok, c], yerr=profile.stderr[ok, c], fmt=".", ms=3,
+            color=_RGB[c], alpha=0.6, label=f"{'RGB'[c]} measured",
+        )  # fmt: skip
+        ax.semilogy(
+            rr, model, "-", color=_RGB[c], lw=1.2,
+            label=f"{'RGB'[c]} fit: $\\sigma_a$={fit.sigma_a[c]:.4g}, "
+            f"$\\sigma_s'$={fit.sigmap_s[c]:.4g} mm$^{{-1}}$",
+        )  # fmt: skip
+        axr.plot(r, profile.mean[:, c] / at - 1.0, ".", ms=3, color=_RGB[c])
+    for a in (ax, axr):
+        if r_min > 0:
+            a.axvspan(0, r_min, color="0.85", zorder=0)
+        a.grid(True, which="both", alpha=0.3)
+    ax.set_ylabel("R_d(r) [mm$^{-2}$]")
+    ax.set_title("Radial profile vs fitted dipole (grey: excluded centre)")
+    ax.legend(fontsize=7, loc="upper right")
+    axr.axhline(0, color="k", lw=0.6)
+    axr.set_ylim(-0.1, 0.1)
+    axr.set_ylabel("measured / fit - 1")
+    axr.set_xlabel("r [mm]")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -26,6 +26,7 @@ __all__ = [
     "Camera",
     "AreaLight",
     "PointLight",
+    "BeamLight",
     "Material",
     "ShapeSpec",
     "RenderSettings",
@@ -60,7 +61,13 @@ def read_toml(path: Path, error: type[Exception], what: str) -> dict:
 # --- the parsed scene ------------------------------------------------------------------
 @dataclass(frozen=True)
 class Camera:
-    """Pinhole camera. `fov` is the vertical field of view in degrees; positions in mm."""
+    """A pinhole or orthographic camera; positions in mm.
+
+    `projection = "pinhole"`: `fov` is the vertical field of view in degrees.
+    `projection = "orthographic"`: parallel rays along `target - origin`; `view_width` is the
+    horizontal extent of the image on the plane through `origin`, in mm (pixels are square,
+    `view_width / width` mm on a side), as for a telecentric measurement camera.
+    """
 
     origin: np.ndarray
     target: np.ndarray
@@ -68,6 +75,15 @@ class Camera:
     fov: float = 40.0
     width: int = 256
     height: int = 256
+    projection: str = "pinhole"
+    view_width: float = 0.0
+
+    @property
+    def pixel_size_mm(self) -> float | None:
+        """Side of a pixel in mm for an orthographic camera, `None` for a pinhole."""
+        if self.projection != "orthographic":
+            return None
+        return self.view_width / self.width
 
     def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Unit (forward, right, up) vectors of the image plane."""
@@ -105,6 +121,19 @@ class PointLight:
 
     position: np.ndarray
     intensity: np.ndarray
+
+
+@dataclass(frozen=True)
+class BeamLight:
+    """A collimated beam of circular cross-section: it leaves the disc of `radius` (mm)
+    around `position`, perpendicular to `direction`, and carries RGB `power` (W) along
+    `direction`. A surface it hits at incidence angle `theta` receives irradiance
+    `power cos(theta) / (pi radius^2)` inside the beam (Jensen's measurement setup)."""
+
+    position: np.ndarray
+    direction: np.ndarray
+    radius: float
+    power: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -150,6 +179,7 @@ class SSSSettings:
     outer: float = 0.0
     tries: int = 8
     bins: int = 256
+    beam_points: int = 2048
 
 
 @dataclass(frozen=True)
@@ -329,7 +359,10 @@ _CAMERA = {
     "fov": (_pos, 40.0),
     "width": (_pos_int, 256),
     "height": (_pos_int, 256),
+    "projection": (_str, "pinhole"),
+    "view_width": (_pos, 0.0),
 }
+_PROJECTIONS = ("pinhole", "orthographic")
 _RENDER = {
     "spp": (_pos_int, 16),
     "light_samples": (_pos_int, 4),
@@ -351,6 +384,7 @@ _SSS = {
     "outer": (_nonneg, 0.0),
     "tries": (_pos_int, 8),
     "bins": (_pos_int, 256),
+    "beam_points": (_pos_int, 2048),
 }
 _LIGHTS = {
     "area": {
@@ -364,6 +398,13 @@ _LIGHTS = {
         "type": (_str, REQUIRED),
         "position": (_vec3, REQUIRED),
         "intensity": (_rgb, REQUIRED),
+    },
+    "beam": {
+        "type": (_str, REQUIRED),
+        "position": (_vec3, REQUIRED),
+        "direction": (_vec3, REQUIRED),
+        "radius": (_pos, REQUIRED),
+        "power": (_rgb, REQUIRED),
     },
 }
 _MATERIALS = {
@@ -517,6 +558,14 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
         raise cctx.err("up", "must not be parallel to the viewing direction")
     if not 0 < cam["fov"] < 180:
         raise cctx.err("fov", f"must be between 0 and 180 degrees, got {cam['fov']:g}")
+    if cam["projection"] not in _PROJECTIONS:
+        hint = did_you_mean(cam["projection"], _PROJECTIONS)
+        raise cctx.err(
+            "projection",
+            f"unknown projection {cam['projection']!r}{hint} (known: {', '.join(_PROJECTIONS)})",
+        )
+    if cam["projection"] == "orthographic" and cam["view_width"] <= 0:
+        raise cctx.err("view_width", "an orthographic camera needs view_width > 0 (mm)")
     camera = Camera(**cam)
 
     render = RenderSettings(**_fields(_Ctx(file, "render"), data.get("render", {}), _RENDER))
@@ -549,6 +598,12 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
             if np.linalg.norm(np.cross(f["edge_u"], f["edge_v"])) <= 0:
                 raise ctx.err("edge_v", "edges must span a non-degenerate parallelogram")
             lights.append(AreaLight(**f))
+        elif kind == "beam":
+            norm = np.linalg.norm(f["direction"])
+            if norm == 0:
+                raise ctx.err("direction", "must be a non-zero vector")
+            f["direction"] = f["direction"] / norm
+            lights.append(BeamLight(**f))
         else:
             lights.append(PointLight(**f))
 

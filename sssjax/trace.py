@@ -33,7 +33,7 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from . import dipole
 from .camera import camera_rays
-from .lights import LightArrays, direct_irradiance
+from .lights import LightArrays, beam_irradiance, direct_irradiance
 from .sampling import stratified_1d, stratified_2d
 from .scene import Scene
 from .shapes import intersect_all
@@ -123,6 +123,10 @@ class Cloud(eqx.Module):
     normals: Float[Array, "No N 3"]
     irradiance: Float[Array, "No N 3"]  # transmitted into the medium: int F_t L cos dw
     area: Float[Array, " No"]  # area per point, mm^2
+    # beam lights: where each of `Nb` beam rays enters the object and the power it carries
+    # into the medium (W, Fresnel transmittance included; zero if it hit something else)
+    beam_points: Float[Array, "No Nb 3"]
+    beam_flux: Float[Array, "No Nb 3"]
 
 
 def refract(d: Array, n: Array, eta: Array) -> tuple[Array, Array]:
@@ -200,6 +204,8 @@ class SceneTracer:
         self.spp = scene.render.spp
         n = scene.sss.cloud_size
         self.cloud_n = int(math.ceil(n / self.spp) * self.spp)
+        nb = scene.sss.beam_points
+        self.beam_n = int(math.ceil(nb / self.spp) * self.spp)  # beam rays per beam
         self.bins = scene.sss.bins
         if self.tobj_shape:
             diag = max(
@@ -220,6 +226,9 @@ class SceneTracer:
         )
         self.sss_on = scene.sss.enabled and bool(self.tobj_shape)
         self.ss_on = self.sss_on and scene.sss.single_scattering
+        # a `sssjax.raytree` recorder: set only on a tracer whose methods run eagerly (never
+        # under jit); every hook below is skipped while it is None
+        self._rec = None
         self._cloud_fn = jax.jit(self._cloud)
         self._chain_fn = jax.jit(self._chain_block)
         self._sss_fn = jax.jit(self._sss_block)
@@ -239,6 +248,8 @@ class SceneTracer:
     def occluded(self, o, d, t_max):
         """Shadow ray: is there any shape between `o` and `o + t_max d`?"""
         t, _, _ = self.intersect(o, d)
+        if self._rec is not None:
+            self._rec.shadow(o, d, t, t_max)
         return t < t_max
 
     def intersect_object(self, j_obj, o, d):
@@ -284,10 +295,45 @@ class SceneTracer:
             nrm.append(nn)
             irr.append(E)
             area.append(self.tobj_area[j] / n)
+        bp, bf = self._beam_cloud(jax.random.fold_in(key, 7919))
         if not pts:
             z = jnp.zeros((0, n, 3))
-            return Cloud(z, z, z, jnp.zeros((0,)))
-        return Cloud(jnp.stack(pts), jnp.stack(nrm), jnp.stack(irr), jnp.asarray(area))
+            return Cloud(z, z, z, jnp.zeros((0,)), bp, bf)
+        return Cloud(jnp.stack(pts), jnp.stack(nrm), jnp.stack(irr), jnp.asarray(area), bp, bf)
+
+    def _beam_cloud(self, key):
+        """Entry points and carried power of `beam_n` stratified rays per beam light, cast
+        from the beam's source disc: `(No, n_beam * beam_n, 3)` each. Each ray carries
+        `P / beam_n`; where it enters translucent object `j` that power times the Fresnel
+        transmittance enters the medium. Unlike the uniform cloud this resolves a beam much
+        narrower than the cloud spacing exactly (Jensen's point-illumination measurement)."""
+        No, L, nb = len(self.tobj_shape), self.lights.n_beam, self.beam_n
+        if L == 0:
+            z = jnp.zeros((No, 0, 3))
+            return z, z
+        pts, flux = [], []
+        for k in range(L):
+            u = stratified_2d(jax.random.fold_in(key, k), nb)
+            e1, e2 = self.lights.beam_frame(k)
+            rho = self.lights.beam_radius[k] * jnp.sqrt(u[:, 0])
+            phi = 2.0 * jnp.pi * u[:, 1]
+            d = self.lights.beam_dir[k]
+            o = self.lights.beam_origin[k] + rho[:, None] * (
+                jnp.cos(phi)[:, None] * e1 + jnp.sin(phi)[:, None] * e2
+            )
+            t, n, sid = self.intersect(o, jnp.broadcast_to(d, o.shape))
+            x = o + jnp.where(jnp.isfinite(t), t, 0.0)[:, None] * d
+            cos = -(n @ d)
+            p_obj, f_obj = [], []
+            for i in self.tobj_shape:
+                on = (sid == i) & (cos > 0)
+                Ft = dipole.fresnel_transmittance(jnp.where(on, cos, 1.0), self.shape_eta[i])
+                Phi = (Ft / nb)[:, None] * self.lights.beam_power[k]
+                f_obj.append(jnp.where(on[:, None], Phi, 0.0))
+                p_obj.append(x)
+            pts.append(jnp.stack(p_obj))
+            flux.append(jnp.stack(f_obj))
+        return jnp.concatenate(pts, axis=1), jnp.concatenate(flux, axis=1)
 
     # -- phase 1: camera rays and their specular chains ----------------------------------
     def chain_block(self, pixels: Array, key: PRNGKeyArray):
@@ -341,6 +387,8 @@ class SceneTracer:
             ns = jnp.where((cos >= 0)[:, None], n, -n)  # normal facing the ray
             is_t = (k == TRANSLUCENT) & (cos > 0)
             eta = eta_s[sidc]
+            if self._rec is not None:
+                self._rec.chain(depth, o, d, x, tl, alive, hit_light, hit, k, is_t & ~slot["have"])
             if has_diffuse or self.sss_on:
                 # one set of shadow rays serves both: plain irradiance on diffuse surfaces,
                 # Fresnel-transmitted irradiance E(x_o) (the dipole's near field) on
@@ -358,7 +406,10 @@ class SceneTracer:
 
                 E = direct_irradiance(self.lights, x, ns, ul, self.occluded, transmit)
                 is_d = (k == DIFFUSE)[:, None]
-                base = base + jnp.where(is_d, T * albedo[sidc] / jnp.pi * E, 0.0)
+                E_d = E
+                if self.lights.n_beam and has_diffuse:
+                    E_d = E + beam_irradiance(self.lights, x, ns, self.occluded)
+                base = base + jnp.where(is_d, T * albedo[sidc] / jnp.pi * E_d, 0.0)
             Fr = dipole.fresnel_reflectance(cos, eta)
             if self.sss_on:
                 first = is_t & ~slot["have"]
@@ -402,6 +453,10 @@ class SceneTracer:
         else:
             hist = self._sample_ms(
                 k_ms, s["have"], s["xo"], s["cos_o"], s["tobj"], s["T_slot"], P, S
+            )
+        if self.lights.n_beam:
+            hist = hist + self._gather_beams(
+                cloud, s["have"], s["xo"], s["cos_o"], s["tobj"], s["T_slot"], P, S
             )
         K = self.ss_per_sample
         if K > 0:
@@ -458,6 +513,8 @@ class SceneTracer:
         w_o = w_o * cloud.area[tobj][:, None] / S  # area per point; / S for the pixel mean
         far = (r >= jnp.asarray(self.tobj_rnear, dtype=float)[tobj][:, None])[..., None]
         w = jnp.where(far, w_o[:, None, :] * E * S, 0.0)  # (M, n_sub, 3)
+        if self._rec is not None:
+            self._rec.points(p, w, have)
         hist = self._bin(r, w, tobj, P, S)
         mat = jnp.asarray(self.tobj_mat)[tobj][:, None]
         # near field: (T F_t / pi) E(x_o) int_{r < R_near} 2 pi r R_d(r) dr, on the nodes
@@ -471,6 +528,27 @@ class SceneTracer:
             onehot.reshape(P, S, Mt),
         )
         return hist + near
+
+    def _gather_beams(self, cloud, have, xo, cos_o, tobj, T_slot, P, S):
+        """Distance-node weights of `F_t(cos_o)/pi sum_i R_d(|x_o - x_i|) Phi_i` over the
+        beam rays (power `Phi_i` entering at `x_i`), each sample gathering a stratified
+        `1/spp` subset (scaled by spp). No near-field disc: the beam points are the source."""
+        M = P * S
+        n_sub = cloud.beam_points.shape[1] // S
+        pts = cloud.beam_points.reshape(-1, n_sub, S, 3).transpose(0, 2, 1, 3)
+        flx = cloud.beam_flux.reshape(-1, n_sub, S, 3).transpose(0, 2, 1, 3)
+        tob = tobj.reshape(P, S, 1, 1)
+        p, Phi = pts[0][None], flx[0][None]
+        for jo in range(1, pts.shape[0]):
+            p = jnp.where(tob == jo, pts[jo][None], p)
+            Phi = jnp.where(tob == jo, flx[jo][None], Phi)
+        r = jnp.linalg.norm(p - xo.reshape(P, S, 1, 3), axis=-1).reshape(M, n_sub)
+        Phi = jnp.broadcast_to(Phi, (P, S, n_sub, 3)).reshape(M, n_sub, 3)
+        eta = jnp.asarray(self.shape_eta, dtype=float)[jnp.asarray(self.tobj_shape)][tobj]
+        Ft_o = dipole.fresnel_transmittance(cos_o, eta)
+        w_o = jnp.where(have, 1.0, 0.0)[:, None] * T_slot * (Ft_o / jnp.pi)[:, None]
+        w = w_o[:, None, :] * Phi  # (M, n_sub, 3): x S for the subset, / S for the mean
+        return self._bin(r, w, tobj, P, S)
 
     def _bin(self, r, w, tobj, P, S):
         """Scatter weights `w (M, n, 3)` at distances `r (M, n)` onto the distance nodes of
@@ -534,6 +612,8 @@ class SceneTracer:
         p1, n1 = take(p), take(n)
         r1 = jnp.take_along_axis(r, first[..., None], axis=2)[..., 0]
         ul = stratified_2d(k3, nl * nl, (M, K))
+        if self._rec is not None:
+            self._rec.dipole(xo, p1, have)
 
         def transmit(c):
             return dipole.fresnel_transmittance(c, eta.reshape((-1,) + (1,) * (c.ndim - 1)))
@@ -543,6 +623,8 @@ class SceneTracer:
         w_o = jnp.where(have, 1.0, 0.0)[:, None] * T_slot * (Ft_o / jnp.pi)[:, None]
         scale = area[:, None] * n_acc / (T * K * S)  # (M, K)
         w = w_o[:, None, :] * E * scale[..., None]
+        if self._rec is not None:
+            self._rec.points(p1, w, have)
         return self._bin(r1, w, tobj, P, S)
 
     def _single_scatter(self, key, have, xo, din, cos_o, tobj, T_slot, P, S):
@@ -568,6 +650,8 @@ class SceneTracer:
         sp_o = jnp.where(use_exp, s_exp, s_uni)
         pdf = _PROPOSAL_EXP * lam * jnp.exp(-lam * sp_o) / norm + (1 - _PROPOSAL_EXP) / th
         xs = xo[:, None, :] + sp_o[..., None] * din[:, None, :]  # (M, n_ss, 3)
+        if self._rec is not None:
+            self._rec.ss_paths(xo, xs, have)
         # light samples: one stratified point per scatter sample on each area light
         targets = []
         for k in range(self.lights.n_area):
@@ -591,6 +675,8 @@ class SceneTracer:
             cos_i = jnp.sum(w * n_i, axis=-1)
             to_light = y - xi
             dist = jnp.linalg.norm(to_light, axis=-1)
+            if self._rec is not None:
+                self._rec.ss_exit(xs, xi)
             vis = ~self.occluded(xi + EPS * n_i, w, dist * (1 - 1e-4))
             prop_in, ok_r = refract(-w, n_i, eta[..., None])
             phase = jnp.sum(prop_in * -din[:, None, :], axis=-1)
