@@ -175,22 +175,9 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         target = render(scene, job.synthetic_seed)
     else:
         target = read_image(job.target) if job.target.exists() else job.target
-    res = fit(
-        scene,
-        target,
-        params=job.params,
-        init=job.init,
-        seed=job.seed,
-        solver=job.method,
-        max_steps=job.max_steps,
-        rtol=job.rtol,
-        atol=job.atol,
-        loss=job.loss,
-        loss_scale=job.loss_scale,
-        progress=True,
-    )
+    res = fit(scene, target, **job.fit_kwargs(), progress=True)
     out.mkdir(parents=True, exist_ok=True)
-    fitted = render(scene, job.seed, media=res.media)
+    fitted = render(scene, job.seed, media=res.media) * res.exposure
     write_image(out / "fit.exr", fitted)
     write_image(out / "fit.png", fitted)
     _, psnr, ssim = fit_triptych(np.asarray(target), fitted, out / "triptych.png")
@@ -332,6 +319,31 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_raytree(args: argparse.Namespace) -> int:
+    from .raytree import raytree_files
+
+    _, js, png = raytree_files(
+        args.scene,
+        tuple(args.pixel),
+        json_path=args.output,
+        png_path=args.png,
+        seed=args.seed,
+        image_path=args.image,
+        force=args.force,
+    )
+    print(f"wrote {js.resolve()}\nwrote {png.resolve()}")
+    return 0
+
+
+def _cmd_preview(args: argparse.Namespace) -> int:
+    from .viewer import serve
+
+    if not 0 <= args.port <= 65535:
+        raise UserError(f"--port must be in 0..65535, got {args.port}")
+    serve(args.scene, host=args.host, port=args.port)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from ._version import __version__
 
@@ -379,6 +391,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--force", action="store_true", help="overwrite an existing result")
     s.set_defaults(func=_cmd_fit)
 
+    s = sub.add_parser("raytree", help="the rays behind one pixel: JSON and a picture")
+    s.add_argument("scene", help="scene TOML file")
+    s.add_argument("--pixel", type=int, nargs=2, metavar=("X", "Y"), required=True)
+    s.add_argument("-o", "--output", help="tree JSON (default: out/SCENE_raytree_X_Y.json)")
+    s.add_argument("--png", help="picture (default: out/SCENE_raytree_X_Y.png)")
+    s.add_argument("--seed", type=int, help="random seed of the render (default: the scene's)")
+    s.add_argument("--image", help="backdrop image (e.g. the render's EXR; default: quick render)")
+    s.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    s.set_defaults(func=_cmd_raytree)
+
     s = sub.add_parser(
         "measure",
         help="fit sigma_a, sigmap_s (1/mm) to the radial profile of a beam-lit image "
@@ -401,6 +423,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--output", help="output folder (default: out/measure-IMAGE)")
     s.add_argument("--force", action="store_true", help="overwrite an existing result")
     s.set_defaults(func=_cmd_measure)
+
+    s = sub.add_parser("preview", help="interactive previewer of a scene in the browser (viser)")
+    s.add_argument("scene", help="scene TOML file")
+    s.add_argument("--port", type=int, default=8080, help="port (default 8080; 0: any free port)")
+    s.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    s.set_defaults(func=_cmd_preview)
     return p
 
 

@@ -30,7 +30,7 @@ import optimistix as optx
 from ._numerics import safe_sqrt
 from .media import Medium
 from .render import as_key, renderer_for
-from .scene import Scene
+from .scene import Scene, did_you_mean
 from .shade import shade_sss
 
 __all__ = ["fit", "FitResult", "FitError", "PARAM_FIELDS"]
@@ -67,6 +67,12 @@ class FitResult:
     trace_time_s: float
     history: list[dict[str, Any]]
     warnings: list[str]
+    trace_stderr: dict[str, float] | None = None  # from `refine`: the trace-noise part
+
+    @property
+    def exposure(self) -> float:
+        """The fitted exposure factor (1 when it was not free)."""
+        return float(self.values.get("exposure", 1.0))
 
     def to_json(self, path: str | Path | None = None) -> str:
         """The result as JSON (media as coefficient lists); written to `path` if given."""
@@ -101,14 +107,20 @@ class FitResult:
         return "\n".join(lines)
 
 
-def _resolve_params(scene: Scene, params: Sequence[str] | None) -> list[tuple[str, str]]:
+def _resolve_params(
+    scene: Scene, params: Sequence[str] | None
+) -> tuple[list[tuple[str, str]], bool]:
+    """The free `(material, field)` pairs, and whether the exposure is free."""
     tm = scene.translucent_materials
     if not tm:
         raise FitError("the scene has no translucent material to fit")
     if params is None:
-        return [(m, f) for m in tm for f in ("sigma_a", "sigma_s")]
+        return [(m, f) for m in tm for f in ("sigma_a", "sigma_s")], False
     out = []
+    exposure = "exposure" in params
     for p in params:
+        if p == "exposure":
+            continue
         mat, _, field = p.rpartition(".")
         if not mat:
             if len(tm) != 1:
@@ -121,13 +133,17 @@ def _resolve_params(scene: Scene, params: Sequence[str] | None) -> list[tuple[st
                 f"parameter {p!r}: no translucent material {mat!r} (known: {', '.join(tm)})"
             )
         if field not in PARAM_FIELDS:
-            raise FitError(f"unknown parameter {field!r} (known: {', '.join(PARAM_FIELDS)})")
+            known = ", ".join((*PARAM_FIELDS, "exposure"))
+            hint = did_you_mean(field, [*PARAM_FIELDS, "exposure"])
+            raise FitError(f"unknown parameter {field!r}{hint} (known: {known})")
         out.append((mat, field))
     for mat in tm:
         fields = {f for m, f in out if m == mat}
         if {"sigma_s", "sigmap_s"} <= fields:
             raise FitError(f"{mat}: free either sigma_s or sigmap_s, not both")
-    return out
+    if not out:
+        raise FitError("params: free at least one coefficient (exposure alone fits nothing)")
+    return out, exposure
 
 
 def _load_target(target, shape: tuple[int, int]) -> np.ndarray:
@@ -171,7 +187,10 @@ def fit(
     atol: float = 1e-6,
     loss: str = "l2",
     loss_scale: float = 0.1,
+    weighting: str = "absolute",
+    rel_floor: float = 0.01,
     traces: int = 1,
+    refine: bool = False,
     progress: bool = False,
 ) -> FitResult:
     """Recover scattering coefficients of the scene's translucent materials from `target`.
@@ -181,9 +200,12 @@ def fit(
     - `scene`: the scene the target was taken in (camera, lights, geometry).
     - `target`: `(H, W, 3)` linear radiance, or an image path (EXR/PNG/TIFF).
     - `params`: free parameters, `"MATERIAL.FIELD"` with FIELD in `sigma_a`, `sigma_s`,
-      `sigmap_s` (each RGB; the material may be omitted when there is only one). Default:
-      `sigma_a` and `sigma_s` of every translucent material.
-    - `init`: initial values by `"MATERIAL.FIELD"` (RGB, mm^-1, > 0); default: the scene's.
+      `sigmap_s` (each RGB; the material may be omitted when there is only one), and
+      `"exposure"`: one overall factor on the rendered image (a nuisance parameter for an
+      uncalibrated camera or light). Default: `sigma_a` and `sigma_s` of every translucent
+      material.
+    - `init`: initial values by `"MATERIAL.FIELD"` (RGB, mm^-1, > 0) or `"exposure"`;
+      default: the scene's (exposure 1).
     - `mask`: `(H, W)` boolean pixels to fit; default: every pixel that sees a translucent
       object (the only pixels the coefficients affect).
     - `seed`: trace seed (default the scene's).
@@ -191,18 +213,26 @@ def fit(
       is shared by all its pixels, so a single trace biases the fit by more than its
       per-pixel error bars say; `traces = 4` roughly halves that bias (and the error bars
       become more honest) at 4x the trace time.
+    - `refine`: after the fit, trace again with a fresh seed, fit that trace alone from the
+      solution, then fit both jointly. The final values are the joint fit; the difference
+      between the two single-trace fits measures the trace noise, which is reported in
+      `trace_stderr` and added (in quadrature) to `stderr`.
     - `solver`: `"lm"` (Levenberg-Marquardt), `"gn"` (Gauss-Newton) or `"bfgs"` (on the
       scalar loss).
+    - `weighting`: `"absolute"` residuals in units of the target's mean level, or
+      `"relative"`: each pixel's residual divided by its target value (plus `rel_floor`
+      times the mean level), for targets spanning decades such as a beam-lit slab, where
+      absolute residuals let the brightest pixels decide everything.
     - `loss`: `"l2"`, or a robust `"cauchy"` / `"huber"` for photographs with outliers
-      (specular highlights, dust); `loss_scale` is their transition, in units of the target's
-      mean level over the fitted pixels. Error bars then come from the transformed residuals.
+      (specular highlights, dust); `loss_scale` is their transition, in units of the
+      (weighted) residual. Error bars then come from the transformed residuals.
 
     **Returns:** a `FitResult`. A fit that fails to converge says so in `status`/`message`.
     """
     t_start = time.perf_counter()
     cam = scene.camera
     tgt = _load_target(target, (cam.height, cam.width))
-    free = _resolve_params(scene, params)
+    free, exposure = _resolve_params(scene, params)
     media0 = scene.media()
     init = dict(init or {})
     start = {}
@@ -216,10 +246,23 @@ def fit(
         if not np.all(np.isfinite(v)) or np.any(v <= 0):
             raise FitError(f"initial {mat}.{field} must be finite and > 0, got {v.tolist()}")
         start[(mat, field)] = v
+    e0 = float(np.asarray(init.pop("exposure", 1.0), dtype=np.float64)) if exposure else 1.0
+    if not (np.isfinite(e0) and e0 > 0):
+        raise FitError(f"initial exposure must be finite and > 0, got {e0}")
     if init:
         raise FitError(f"init names parameters that are not free: {sorted(init)}")
     if not (isinstance(traces, int) and traces >= 1):
         raise FitError(f"traces must be an integer >= 1, got {traces!r}")
+    if loss not in ("l2", "cauchy", "huber"):
+        raise FitError(f"unknown loss {loss!r} (known: l2, cauchy, huber)")
+    if not loss_scale > 0:
+        raise FitError(f"loss_scale must be > 0, got {loss_scale}")
+    if weighting not in ("absolute", "relative"):
+        raise FitError(f"unknown weighting {weighting!r} (known: absolute, relative)")
+    if not rel_floor > 0:
+        raise FitError(f"rel_floor must be > 0, got {rel_floor}")
+    if solver not in ("lm", "gn", "bfgs"):
+        raise FitError(f"unknown solver {solver!r} (known: lm, gn, bfgs)")
 
     renderer = renderer_for(scene)
     if mask is not None:
@@ -228,105 +271,51 @@ def fit(
             raise FitError(f"mask has shape {mask.shape}, expected {(cam.height, cam.width)}")
     key0 = as_key(seed, scene)
     t0 = time.perf_counter()
-    subs, tgts, bases = [], [], []
-    for k in range(traces):
-        # several independent traces average out the noise that one trace (its irradiance
-        # cloud above all) shares across every pixel, which a single trace fits as signal
-        key = key0 if k == 0 else jax.random.fold_in(key0, 1000 + k)
-        transport = renderer.trace(key, progress=progress)
-        pix = np.asarray(transport.translucent_pixels())
-        rows = np.asarray(transport.t_rows)
-        if mask is not None:
-            rows_sel = np.flatnonzero(mask.reshape(-1)[pix])
-            if len(rows_sel) == 0:
-                raise FitError("the mask selects no pixel that sees a translucent object")
-        else:
-            if len(pix) == 0:
-                raise FitError("no pixel sees a translucent object: nothing to fit")
-            rows_sel = np.arange(len(pix))
-        tgts.append(tgt.reshape(-1, 3)[pix[rows_sel]])
-        bases.append(np.asarray(transport.base)[rows[rows_sel]])
-        subs.append(
-            jax.tree_util.tree_map(
-                lambda a, r=rows_sel: a[:, r] if a.ndim == 4 else a[r], transport.sss_terms()
-            )
-        )
+    # several independent traces average out the noise that one trace (its irradiance
+    # cloud above all) shares across every pixel, which a single trace fits as signal
+    keys = [key0 if k == 0 else jax.random.fold_in(key0, 1000 + k) for k in range(traces)]
+    data = [_trace_data(renderer, k, tgt, mask, progress) for k in keys]
     trace_time = time.perf_counter() - t0
-    tgt_flat, base = np.concatenate(tgts), np.concatenate(bases)
-    sub = jax.tree_util.tree_map(
-        lambda *xs: jnp.concatenate(xs, axis=1 if xs[0].ndim == 4 else 0), *subs
+    names = [f"{m}.{f}.{_CH[c]}" for m, f in free for c in range(3)] + ["exposure"] * exposure
+    y0 = jnp.asarray(np.concatenate([np.log(start[k]) for k in free] + [[np.log(e0)]] * exposure))
+    fn_kw = dict(
+        free=tuple(free),
+        exposure=exposure,
+        loss=loss,
+        media0=media0,
+        solver=solver,
+        max_steps=max_steps,
+        rtol=rtol,
+        atol=atol,
+        loss_scale=loss_scale,
+        weighting=weighting,
+        rel_floor=rel_floor,
+        names=names,
+        progress=progress,
     )
-    scale = float(np.mean(np.abs(tgt_flat))) or 1.0  # residuals in units of the mean level
-    target_j = jnp.asarray((tgt_flat - base) / scale)
-    order = transport.materials
-    args = (
-        sub,
-        target_j,
-        transport.r_nodes,
-        tuple(media0[m] for m in order),
-        scale,
-        jnp.asarray(loss_scale, dtype=target_j.dtype),
-    )
-    free_t = tuple(free)
-    if loss not in ("l2", "cauchy", "huber"):
-        raise FitError(f"unknown loss {loss!r} (known: l2, cauchy, huber)")
-    if not loss_scale > 0:
-        raise FitError(f"loss_scale must be > 0, got {loss_scale}")
-    residuals = _residual_fn(free_t, order, loss)
-    y0 = jnp.asarray(np.log(np.concatenate([start[k] for k in free])))
-    names = [f"{m}.{f}.{_CH[c]}" for m, f in free for c in range(3)]
-    history: list[dict[str, Any]] = []
-
-    if solver in ("lm", "gn"):
-        slv = (optx.LevenbergMarquardt if solver == "lm" else optx.GaussNewton)(rtol, atol)
-        options = {"jac": "fwd"}
-    elif solver == "bfgs":
-        slv = optx.BFGS(rtol, atol)
-        options = {}
-    else:
-        raise FitError(f"unknown solver {solver!r} (known: lm, gn, bfgs)")
-    fn = _solver_fn(free_t, order, solver == "bfgs", loss)
-
-    state = _init(slv, fn, y0, args, options)
-    y = y0
-    loss0 = float(_loss(residuals, y0, args))
-    history.append({"step": 0, "loss": loss0, "params": np.exp(np.asarray(y0)).tolist()})
-    if progress:
-        _progress_line(0, loss0, names, np.exp(np.asarray(y0)))
-    result = optx.RESULTS.max_steps_reached
-    stalled = False
-    n = 0
-    for n in range(1, max_steps + 1):
-        y, state, done, res, loss = _step(slv, fn, residuals, y, args, options, state)
-        loss = float(loss)
-        history.append({"step": n, "loss": loss, "params": np.exp(np.asarray(y)).tolist()})
+    run = _solve(data, y0, **fn_kw)
+    trace_sd = None
+    if refine:
+        t0 = time.perf_counter()
+        fresh = _trace_data(renderer, jax.random.fold_in(key0, 99_991), tgt, mask, progress)
+        trace_time += time.perf_counter() - t0
         if progress:
-            _progress_line(n, loss, names, np.exp(np.asarray(y)))
-        if bool(done):
-            result = res
-            break
-        # float32 shading puts a floor under the loss; optimistix's Cauchy test may keep
-        # taking rejected LM steps there. Stop once the loss has stalled after progress.
-        if n >= 3 and loss < 0.5 * loss0:
-            recent = [h["loss"] for h in history[-4:]]
-            if max(recent) - min(recent) <= rtol * max(recent):
-                result = optx.RESULTS.successful
-                stalled = True
-                break
-    converged = result == optx.RESULTS.successful
-    status = (
-        "successful"
-        if converged
-        else ("max_steps_reached" if result == optx.RESULTS.max_steps_reached else "failed")
-    )
-    message = optx.RESULTS[result] if not converged else "converged"
-    if stalled:
-        message = "converged (loss unchanged to rtol over the last 3 steps)"
-    if not converged and not message:
-        message = f"no convergence within {max_steps} steps"
+            print("refine: fit a fresh trace from the solution", file=sys.stderr, flush=True)
+        other = _solve([fresh], run["y"], **fn_kw)
+        if progress:
+            print("refine: joint fit of both traces", file=sys.stderr, flush=True)
+        joint = _solve(data + [fresh], 0.5 * (run["y"] + other["y"]), **fn_kw)
+        # two single-trace solutions differ by trace noise alone (same target): their
+        # half-difference estimates the trace-noise error of the joint (mean) solution
+        trace_sd = 0.5 * np.abs(np.asarray(run["y"] - other["y"], dtype=np.float64))
+        joint["history"] = run["history"] + other["history"] + joint["history"]
+        joint["steps"] = run["steps"] + other["steps"] + joint["steps"]
+        joint["loss0"] = run["loss0"]
+        run = joint
 
-    # uncertainty: Gauss-Newton covariance at the solution, in log space, then delta method
-    J, r = _jac_res(residuals, y, args)
+    y = run["y"]
+    order = run["order"]
+    J, r = _jac_res(run["residuals"], y, run["args"])
     J, r = np.asarray(J, dtype=np.float64), np.asarray(r, dtype=np.float64)
     dof = max(r.size - y.size, 1)
     s2 = float(r @ r) / dof
@@ -347,13 +336,30 @@ def fit(
     sd_log = np.sqrt(np.clip(np.diag(cov_log), 0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov_log / np.outer(sd_log, sd_log)
+    trace_stderr = None
+    if trace_sd is not None:
+        trace_stderr = dict(zip(names, (vals * trace_sd).tolist(), strict=True))
+        sd_log = np.sqrt(sd_log**2 + trace_sd**2)
+        ratio = np.max(trace_sd / np.maximum(np.sqrt(np.diag(cov_log)), 1e-300))
+        if ratio > 2:
+            warnings.append(
+                f"trace noise dominates the error (up to {ratio:.0f}x the statistical "
+                "error): use more traces, a larger cloud_size or more spp"
+            )
     fields = {f for _, f in free}
     if "sigma_s" in fields and not scene.sss.single_scattering:
         warnings.append(
             "sigma_s is free but single scattering is off: the dipole sees only "
             "sigmap_s = sigma_s (1 - g)"
         )
-    fitted = dict(zip(order, _media_of(free_t, order, jnp.asarray(y), args[3]), strict=True))
+    if exposure and "sigma_a" in fields:
+        warnings.append(
+            "exposure is free: the absolute level no longer pins the albedo, so sigma_a rests "
+            "on the shape of the image alone (see its error bar)"
+        )
+    converged, status, message = run["converged"], run["status"], run["message"]
+    y_media = y[: 3 * len(free)]
+    fitted = dict(zip(order, _media_of(tuple(free), order, y_media, run["args"][3]), strict=True))
     return FitResult(
         names=names,
         values=dict(zip(names, vals.tolist(), strict=True)),
@@ -361,16 +367,145 @@ def fit(
         initial=dict(zip(names, np.exp(np.asarray(y0)).tolist(), strict=True)),
         correlation=np.nan_to_num(corr).tolist(),
         media=fitted,
-        steps=n,
-        loss_initial=loss0,
-        loss_final=float(_loss(residuals, y, args)),
+        steps=run["steps"],
+        loss_initial=run["loss0"],
+        loss_final=float(_loss(run["residuals"], y, run["args"])),
         status=status,
         message=message,
         converged=bool(converged),
         wall_time_s=time.perf_counter() - t_start,
         trace_time_s=trace_time,
-        history=history,
+        history=run["history"],
         warnings=warnings,
+        trace_stderr=trace_stderr,
+    )
+
+
+def _trace_data(renderer, key, tgt, mask, progress):
+    """Trace once and keep what the fit needs: the subsurface terms of the fitted pixels,
+    their target values and their medium-independent radiance (`base`)."""
+    transport = renderer.trace(key, progress=progress)
+    pix = np.asarray(transport.translucent_pixels())
+    rows = np.asarray(transport.t_rows)
+    if mask is not None:
+        rows_sel = np.flatnonzero(mask.reshape(-1)[pix])
+        if len(rows_sel) == 0:
+            raise FitError("the mask selects no pixel that sees a translucent object")
+    else:
+        if len(pix) == 0:
+            raise FitError("no pixel sees a translucent object: nothing to fit")
+        rows_sel = np.arange(len(pix))
+    sub = jax.tree_util.tree_map(
+        lambda a, r=rows_sel: a[:, r] if a.ndim == 4 else a[r], transport.sss_terms()
+    )
+    return dict(
+        sub=sub,
+        tgt=tgt.reshape(-1, 3)[pix[rows_sel]],
+        base=np.asarray(transport.base)[rows[rows_sel]],
+        r_nodes=transport.r_nodes,
+        materials=transport.materials,
+    )
+
+
+def _solve(
+    data,
+    y0,
+    *,
+    free,
+    exposure,
+    loss,
+    media0,
+    solver,
+    max_steps,
+    rtol,
+    atol,
+    loss_scale,
+    weighting,
+    rel_floor,
+    names,
+    progress,
+):
+    """Run the solver on the traces in `data` (fitted jointly) from `y0` (log parameters)."""
+    tgt_flat = np.concatenate([d["tgt"] for d in data])
+    base = np.concatenate([d["base"] for d in data])
+    sub = jax.tree_util.tree_map(
+        lambda *xs: jnp.concatenate(xs, axis=1 if xs[0].ndim == 4 else 0),
+        *[d["sub"] for d in data],
+    )
+    scale = float(np.mean(np.abs(tgt_flat))) or 1.0  # residuals in units of the mean level
+    if weighting == "relative":
+        wts = 1.0 / (np.abs(tgt_flat) / scale + rel_floor)
+    else:
+        wts = np.ones_like(tgt_flat)
+    order = data[0]["materials"]
+    dt = jnp.float32 if jnp.asarray(y0).dtype == jnp.float32 else jnp.float64
+    args = (
+        sub,
+        jnp.asarray(tgt_flat / scale, dtype=dt),
+        data[0]["r_nodes"],
+        tuple(media0[m] for m in order),
+        scale,
+        jnp.asarray(loss_scale, dtype=dt),
+        jnp.asarray(base / scale, dtype=dt),
+        jnp.asarray(wts, dtype=dt),
+    )
+    residuals = _residual_fn(free, order, loss, exposure)
+    if solver in ("lm", "gn"):
+        slv = (optx.LevenbergMarquardt if solver == "lm" else optx.GaussNewton)(rtol, atol)
+        options = {"jac": "fwd"}
+    else:
+        slv = optx.BFGS(rtol, atol)
+        options = {}
+    fn = _solver_fn(free, order, solver == "bfgs", loss, exposure)
+    state = _init(slv, fn, y0, args, options)
+    y = y0
+    loss0 = float(_loss(residuals, y0, args))
+    history = [{"step": 0, "loss": loss0, "params": np.exp(np.asarray(y0)).tolist()}]
+    if progress:
+        _progress_line(0, loss0, names, np.exp(np.asarray(y0)))
+    result = optx.RESULTS.max_steps_reached
+    stalled = False
+    n = 0
+    for n in range(1, max_steps + 1):
+        y, state, done, res, lval = _step(slv, fn, residuals, y, args, options, state)
+        lval = float(lval)
+        history.append({"step": n, "loss": lval, "params": np.exp(np.asarray(y)).tolist()})
+        if progress:
+            _progress_line(n, lval, names, np.exp(np.asarray(y)))
+        if bool(done):
+            result = res
+            break
+        # float32 shading puts a floor under the loss; optimistix's Cauchy test may keep
+        # taking rejected LM steps there. Stop once the loss has stalled after progress
+        # (or, when starting at the solution, has not moved at all).
+        if n >= 3 and (lval < 0.5 * loss0 or lval >= 0.999 * loss0):
+            recent = [h["loss"] for h in history[-4:]]
+            if max(recent) - min(recent) <= rtol * max(recent):
+                result = optx.RESULTS.successful
+                stalled = True
+                break
+    converged = result == optx.RESULTS.successful
+    status = (
+        "successful"
+        if converged
+        else ("max_steps_reached" if result == optx.RESULTS.max_steps_reached else "failed")
+    )
+    message = optx.RESULTS[result] if not converged else "converged"
+    if stalled:
+        message = "converged (loss unchanged to rtol over the last 3 steps)"
+    if not converged and not message:
+        message = f"no convergence within {max_steps} steps"
+    return dict(
+        y=y,
+        args=args,
+        residuals=residuals,
+        order=order,
+        steps=n,
+        loss0=loss0,
+        history=history,
+        converged=converged,
+        status=status,
+        message=message,
     )
 
 
@@ -393,11 +528,14 @@ def _media_of(free, order, y, media0):
 # The residual and solver functions are cached per parameter layout, and the data travel as
 # `args`, so a second fit of the same layout reuses the compiled step.
 @functools.lru_cache(maxsize=32)
-def _residual_fn(free, order, loss: str = "l2"):
+def _residual_fn(free, order, loss: str = "l2", exposure: bool = False):
     def residuals(y, args):
-        sub, target_j, r_nodes, media0, scale, c = args
-        L = shade_sss(sub, _media_of(free, order, y, media0), r_nodes)
-        r = (L / scale - target_j).reshape(-1)
+        sub, target_j, r_nodes, media0, scale, c, base_j, wts = args
+        L = shade_sss(sub, _media_of(free, order, y[: 3 * len(free)], media0), r_nodes)
+        model = L / scale + base_j
+        if exposure:
+            model = jnp.exp(y[-1]) * model
+        r = ((model - target_j) * wts).reshape(-1)
         # robust losses as residual transforms r -> sign(r) sqrt(2 rho(r)): least squares on
         # the transformed residuals minimises sum rho(r)
         if loss == "cauchy":
@@ -411,8 +549,8 @@ def _residual_fn(free, order, loss: str = "l2"):
 
 
 @functools.lru_cache(maxsize=32)
-def _solver_fn(free, order, scalar: bool, loss: str = "l2"):
-    residuals = _residual_fn(free, order, loss)
+def _solver_fn(free, order, scalar: bool, loss: str = "l2", exposure: bool = False):
+    residuals = _residual_fn(free, order, loss, exposure)
     if scalar:
         return lambda y, args: (0.5 * jnp.sum(residuals(y, args) ** 2), None)
     return lambda y, args: (residuals(y, args), None)
@@ -448,7 +586,19 @@ def _progress_line(step: int, loss: float, names: list[str], vals: np.ndarray) -
 
 # --- fit files (`sssjax fit FIT.toml`) -------------------------------------------------
 _FIT_KEYS = {"scene", "target", "synthetic", "params", "init", "settings", "solver", "output"}
-_SOLVER_KEYS = {"method", "max_steps", "seed", "rtol", "atol", "loss", "loss_scale"}
+_SOLVER_KEYS = {
+    "method",
+    "max_steps",
+    "seed",
+    "rtol",
+    "atol",
+    "loss",
+    "loss_scale",
+    "weighting",
+    "rel_floor",
+    "traces",
+    "refine",
+}
 _SYNTH_KEYS = {"seed"}
 
 
@@ -470,6 +620,28 @@ class FitJob:
     output: Path
     loss: str = "l2"
     loss_scale: float = 0.1
+    weighting: str = "absolute"
+    rel_floor: float = 0.01
+    traces: int = 1
+    refine: bool = False
+
+    def fit_kwargs(self) -> dict[str, Any]:
+        """The keyword arguments of `fit` this file sets."""
+        return dict(
+            params=self.params,
+            init=self.init,
+            seed=self.seed,
+            solver=self.method,
+            max_steps=self.max_steps,
+            rtol=self.rtol,
+            atol=self.atol,
+            loss=self.loss,
+            loss_scale=self.loss_scale,
+            weighting=self.weighting,
+            rel_floor=self.rel_floor,
+            traces=self.traces,
+            refine=self.refine,
+        )
 
 
 def load_fit_file(path: str | Path) -> FitJob:
@@ -479,7 +651,8 @@ def load_fit_file(path: str | Path) -> FitJob:
     from the scene's own media with seed S: a recovery check), `params` (list), `[init]`
     (values in mm^-1 by `MATERIAL.FIELD`), `[settings]` (scene overrides: `width`, `height`,
     `spp`, `light_samples`, `sss_cloud_size`, ...), `[solver]` (`method` lm|gn|bfgs,
-    `max_steps`, `seed`, `rtol`, `atol`, `loss` l2|cauchy|huber, `loss_scale`), `output` (folder).
+    `max_steps`, `seed`, `rtol`, `atol`, `loss` l2|cauchy|huber, `loss_scale`, `weighting`
+    absolute|relative, `rel_floor`, `traces`, `refine`), `output` (folder).
     """
     from .scene import did_you_mean, load_scene, read_toml
 
@@ -529,4 +702,8 @@ def load_fit_file(path: str | Path) -> FitJob:
         output=Path(d["output"]) if "output" in d else Path("out") / "fits" / path.stem,
         loss=str(solver.get("loss", "l2")),
         loss_scale=float(solver.get("loss_scale", 0.1)),
+        weighting=str(solver.get("weighting", "absolute")),
+        rel_floor=float(solver.get("rel_floor", 0.01)),
+        traces=int(solver.get("traces", 1)),
+        refine=bool(solver.get("refine", False)),
     )
