@@ -16,7 +16,9 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/sssjax demo --out $(OUT)
 
+# The previewer's browser test needs Debian's chromium (CI runs this as root).
 test: $(STAMP)
+	@test -x /usr/bin/chromium || (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium)
 	$(PY) -m pytest -n 2 -q
 
 lint: $(STAMP)

@@ -1,0 +1,445 @@
+"""The browser previewer (`sssjax preview`): server, scene nodes, GUI actions, a real browser.
+
+The browser test drives Debian's headless Chromium through its DevTools protocol (a websocket,
+no extra packages) and needs `/usr/bin/chromium`; `make test` installs it when missing.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.error
+import urllib.request
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sssjax import load_scene
+from sssjax.camera import camera_rays
+from sssjax.imageio import read_image, srgb_encode
+from sssjax.viewer import Previewer, camera_wxyz, save_paths, scene_meshes
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENES = ROOT / "scenes"
+CHROMIUM = "/usr/bin/chromium"
+
+
+@dataclass
+class FakeView:
+    """What viser's `client.camera` offers, without a browser."""
+
+    position: tuple
+    look_at: tuple
+    up_direction: tuple
+    fov: float  # radians, vertical
+    aspect: float
+
+
+@pytest.fixture(scope="module")
+def cube():
+    p = Previewer(SCENES / "marble_cube.toml", port=0).start()
+    yield p
+    p.stop()
+
+
+@pytest.fixture(scope="module")
+def prims():
+    p = Previewer(SCENES / "primitives.toml", port=0).start()
+    yield p
+    p.stop()
+
+
+def _mesh_area(v: np.ndarray, f: np.ndarray) -> float:
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+
+
+def _glb_mesh(glb: bytes):
+    import trimesh
+
+    scene = trimesh.load(io.BytesIO(glb), file_type="glb")
+    (geom,) = scene.geometry.values()
+    return geom
+
+
+# --- server and scene nodes -------------------------------------------------------------
+def test_serves_page_and_stops(cube):
+    assert cube.url.startswith("http://127.0.0.1:")
+    with urllib.request.urlopen(cube.url, timeout=10) as r:
+        assert r.status == 200
+        body = r.read()
+    assert b"<html" in body.lower() and b"<script" in body.lower()
+
+    p = Previewer(SCENES / "marble_cube.toml", port=0).start()
+    url = p.url
+    assert urllib.request.urlopen(url, timeout=10).status == 200
+    p.stop()
+    with pytest.raises((urllib.error.URLError, ConnectionError)):
+        urllib.request.urlopen(url, timeout=5)
+    p.stop()  # idempotent
+
+
+def test_scene_nodes_marble_cube(cube):
+    names = set(cube.nodes)
+    assert {n for n in names if n.startswith("/shapes/")} == {
+        "/shapes/0_cube_marble",
+        "/shapes/1_quadmesh_floor",
+    }
+    assert {n for n in names if n.startswith("/lights/")} == {"/lights/0_area"}
+    assert "/camera/scene" in names
+    for name, h in cube.nodes.items():
+        assert h.name == name
+    # the marble tint is its total diffuse reflectance, computed here from Jensen et al.'s
+    # closed form with the measured marble coefficients (sigma'_s, sigma_a in 1/mm, eta 1.3)
+    sp, sa, eta = np.array([2.19, 2.62, 3.00]), np.array([0.0021, 0.0041, 0.0071]), 1.3
+    fdr = -1.440 / eta**2 + 0.710 / eta + 0.668 + 0.0636 * eta
+    A = (1 + fdr) / (1 - fdr)
+    ap = sp / (sp + sa)
+    root = np.sqrt(3 * (1 - ap))
+    total = ap / 2 * (1 + np.exp(-4 / 3 * A * root)) * np.exp(-root)  # about 0.87, 0.84, 0.80
+    color = np.asarray(cube.nodes["/shapes/0_cube_marble"].color) / 255.0
+    np.testing.assert_allclose(color, total, atol=0.5 / 255 + 1e-9)
+    np.testing.assert_allclose(
+        np.asarray(cube.nodes["/shapes/1_quadmesh_floor"].color) / 255.0,
+        [0.35, 0.35, 0.38],
+        atol=0.003,
+    )
+    # the cube is a 20 mm cube centred at (0, 10, 0): exact area and bounds
+    h = cube.nodes["/shapes/0_cube_marble"]
+    v, f = np.asarray(h.vertices, dtype=np.float64), np.asarray(h.faces)
+    assert _mesh_area(v, f) == pytest.approx(6 * 20.0**2, rel=1e-6)
+    np.testing.assert_allclose(v.min(0), [-10, 0, -10], atol=1e-5)
+    np.testing.assert_allclose(v.max(0), [10, 20, 10], atol=1e-5)
+    # the area light: an emissive 30 x 30 mm square at y = 80, wound to face down
+    light = _glb_mesh(cube.nodes["/lights/0_area"].glb_data)
+    assert light.area == pytest.approx(900.0, rel=1e-6)
+    np.testing.assert_allclose(light.vertices[:, 1], 80.0)
+    n = light.face_normals
+    np.testing.assert_allclose(n, np.tile([0.0, -1.0, 0.0], (len(n), 1)), atol=1e-6)
+    assert np.min(light.visual.material.emissiveFactor) > 0.5
+
+
+def test_scene_nodes_primitives(prims):
+    scene = prims.scene
+    shapes = sorted(n for n in prims.nodes if n.startswith("/shapes/"))
+    assert shapes == [
+        "/shapes/0_sphere_marble",
+        "/shapes/1_cube_red",
+        "/shapes/2_cylinder_skin",
+        "/shapes/3_cone_potato",
+        "/shapes/4_quadmesh_mirror",
+        "/shapes/5_quadmesh_floor",
+    ]
+    for spec, name in zip(scene.shapes, shapes, strict=True):
+        h = prims.nodes[name]
+        if spec.material == "mirror":
+            mesh = _glb_mesh(h.glb_data)  # drawn as polished metal
+            v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+            assert mesh.visual.material.metallicFactor == 1.0
+            assert mesh.visual.material.roughnessFactor <= 0.1
+        else:
+            v, f = np.asarray(h.vertices, dtype=np.float64), np.asarray(h.faces)
+        # the tessellation is the tracer's shape: area within tessellation error, and its
+        # bounding box inside the exact one, touching it within 1 %
+        exact = float(spec.shape.area())
+        assert _mesh_area(v, f) == pytest.approx(exact, rel=0.01), name
+        lo, hi = spec.shape.bounds()
+        size = float(np.linalg.norm(hi - lo))
+        assert np.all(v.min(0) >= lo - 1e-3) and np.all(v.max(0) <= hi + 1e-3), name
+        np.testing.assert_allclose(v.min(0), lo, atol=0.01 * size)
+        np.testing.assert_allclose(v.max(0), hi, atol=0.01 * size)
+    red = np.asarray(prims.nodes["/shapes/1_cube_red"].color) / 255.0
+    np.testing.assert_allclose(red, [0.6, 0.12, 0.1], atol=0.003)
+
+
+def test_frustum_is_the_scene_camera(prims):
+    from viser import transforms as vtf
+
+    cam = prims.scene.camera
+    h = prims.nodes["/camera/scene"]
+    np.testing.assert_allclose(h.position, cam.origin, atol=1e-4)
+    R = vtf.SO3(np.asarray(h.wxyz)).as_matrix()  # OpenCV: columns right, down, forward
+    fwd = (cam.target - cam.origin) / np.linalg.norm(cam.target - cam.origin)
+    np.testing.assert_allclose(R[:, 2], fwd, atol=1e-6)
+    assert R[:, 1] @ cam.up < 0  # image "down" points against the scene's up
+    assert h.fov == pytest.approx(math.radians(cam.fov))
+    assert h.aspect == pytest.approx(cam.width / cam.height)
+    np.testing.assert_allclose(camera_wxyz(cam), h.wxyz)
+
+
+# --- GUI actions, headless --------------------------------------------------------------
+def test_use_this_view(prims):
+    view = FakeView((100.0, 50.0, 80.0), (0.0, 5.0, 0.0), (0.0, 1.0, 0.0), math.radians(50.0), 1.5)
+    cam = prims.use_view(view, height=16)
+    assert (cam.width, cam.height) == (24, 16)
+    assert "/camera/render" in prims.nodes
+    np.testing.assert_allclose(prims.nodes["/camera/render"].position, view.position, atol=1e-4)
+
+    def ray(x, y, jx=0.0):
+        pix = jnp.asarray([y * cam.width + x])
+        jit = jnp.asarray([[[jx, 0.0]]])
+        return np.asarray(camera_rays(cam, pix, jit)[1][0, 0], dtype=np.float64)
+
+    want = np.subtract(view.look_at, view.position)
+    want /= np.linalg.norm(want)
+    np.testing.assert_allclose(ray(12, 8), want, atol=1e-5)  # the centre ray looks at look_at
+    # top edge: half the vertical fov off axis; right edge: tan scaled by the aspect
+    assert math.degrees(math.acos(ray(12, 0) @ want)) == pytest.approx(25.0, abs=1e-3)
+    side = math.atan(math.tan(math.radians(25.0)) * 1.5)
+    assert math.acos(np.clip(ray(23, 8, jx=1.0) @ want, -1, 1)) == pytest.approx(side, abs=1e-5)
+    assert ray(12, 0)[1] > want[1]  # y = 0 is the top: up in the world
+
+    with pytest.raises(ValueError, match="parallel"):
+        prims.use_view(FakeView((0, 50, 0), (0, 0, 0), (0, 1, 0), 0.8, 1.0), height=16)
+    assert prims.camera is cam  # a bad view leaves the camera as it was
+
+    # clicking the drawn image picks the pixel whose ray goes through the click point
+    for x, y in [(3, 11), (20, 2)]:
+        pix = jnp.asarray([y * cam.width + x])
+        o, d = camera_rays(cam, pix, jnp.asarray([[[0.5, 0.5]]]))
+        eye = np.asarray(view.position) + np.array([-30.0, 40.0, 10.0])  # another viewpoint
+        centre, _ = prims.image_plane()
+        hit = np.asarray(o[0, 0]) + np.asarray(d[0, 0]) * (
+            (centre - np.asarray(o[0, 0])) @ want / (np.asarray(d[0, 0]) @ want)
+        )
+        assert prims.pixel_at(eye, hit - eye) == (x, y)
+    assert prims.pixel_at(view.position, -want) is None  # behind the camera
+
+
+def test_render_and_save_never_overwrites(cube, tmp_path):
+    view = FakeView((60.0, 40.0, 90.0), (0.0, 8.0, 0.0), (0.0, 1.0, 0.0), math.radians(40.0), 1.0)
+    cam = cube.use_view(view, height=16)
+    cube.controls["spp"].value = 1
+    cube.controls["light_samples"].value = 1
+    cube.controls["sss"].value = False  # the SSS switch (its compile would double the time)
+    assert cube.render_scene().sss.enabled is False
+    rs = cube.render_scene()
+    assert rs is cube.render_scene()  # reused while nothing changes (compiled renderer)
+    np.testing.assert_allclose(rs.camera.origin, cam.origin)
+    assert (rs.camera.width, rs.camera.height, rs.render.spp, rs.render.light_samples) == (
+        16,
+        16,
+        1,
+        1,
+    )
+    with pytest.raises(ValueError, match="Render first"):
+        cube.save(tmp_path / "early")
+    image = cube.render()
+    assert image.shape == (16, 16, 3)
+    assert np.all(np.isfinite(image)) and np.all(image >= 0) and image.mean() > 0.01
+    assert cube.controls["progress"].value == 100.0
+    assert cube.image_handle.image.shape == (16, 16, 3)  # shown in the panel
+    assert "/render_image" in cube.nodes  # and on the image plane in 3D
+
+    scene_bytes = (SCENES / "marble_cube.toml").read_bytes()
+    first = cube.save(tmp_path / "view")
+    assert {p.name for p in first.values()} == {"view.png", "view.exr", "view.toml"}
+    first_bytes = {k: p.read_bytes() for k, p in first.items()}
+    saved = load_scene(first["toml"])
+    for field in ("origin", "target", "up"):
+        np.testing.assert_allclose(getattr(saved.camera, field), getattr(cam, field))
+    assert (saved.camera.fov, saved.camera.width, saved.camera.height) == (cam.fov, 16, 16)
+    assert (saved.render.spp, saved.render.light_samples) == (1, 1)
+    assert saved.sss.enabled is False
+    assert len(saved.shapes) == len(cube.scene.shapes)
+    np.testing.assert_allclose(read_image(first["exr"]), image, rtol=1e-6)
+
+    second = cube.save(tmp_path / "view.png")  # same stem again: a new name
+    assert {p.name for p in second.values()} == {"view_1.png", "view_1.exr", "view_1.toml"}
+    assert {k: p.read_bytes() for k, p in first.items()} == first_bytes
+    (tmp_path / "other.exr").write_bytes(b"precious")  # any existing file blocks a stem
+    third = cube.save(tmp_path / "other")
+    assert third["png"].name == "other_1.png"
+    assert (tmp_path / "other.exr").read_bytes() == b"precious"
+    assert (SCENES / "marble_cube.toml").read_bytes() == scene_bytes
+    protected = tmp_path / "mine.toml"
+    protected.write_text("x")
+    assert save_paths(tmp_path / "mine")["toml"].name == "mine_1.toml"
+
+
+def test_opacity_slider(prims):
+    prims.set_opacity(0.3)
+    for m in scene_meshes(prims.scene, prims.resolution):
+        if m.style == "matte":
+            assert prims.nodes[m.name].opacity == pytest.approx(0.3)
+        elif m.style == "mirror":
+            mat = _glb_mesh(prims.nodes[m.name].glb_data).visual.material
+            assert mat.baseColorFactor[3] == pytest.approx(0.3 * 255, abs=1)
+    prims.set_opacity(1.0)
+    assert prims.nodes["/shapes/1_cube_red"].opacity is None
+
+
+# --- the command line -------------------------------------------------------------------
+def test_preview_command_prints_url_and_stops_on_ctrl_c():
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "sssjax",
+            "preview",
+            str(SCENES / "marble_cube.toml"),
+            "--port",
+            "0",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        url, t0 = None, time.time()
+        while url is None and time.time() - t0 < 60:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            if "open http://" in line:
+                url = line.split("open ", 1)[1].split()[0]
+        assert url is not None and url.startswith("http://127.0.0.1:")
+        assert urllib.request.urlopen(url, timeout=10).status == 200
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_preview_command_bad_scene(tmp_path, capsys):
+    from sssjax.cli import main
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[camera]\norigin = [0, 0, 1]\ntarget = [0, 0, 0]\nfov = -3\n")
+    assert main(["preview", str(bad), "--port", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "fov" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+# --- a real browser ---------------------------------------------------------------------
+def _decode_png(data: bytes) -> np.ndarray:
+    """sRGB 0-255 pixels of a PNG."""
+    with tempfile.NamedTemporaryFile(suffix=".png") as f:
+        f.write(data)
+        f.flush()
+        linear = read_image(f.name)
+    return np.rint(srgb_encode(np.clip(linear, 0, 1)) * 255.0)
+
+
+def browser_screenshot(url: str, ready, size=(1100, 760), timeout: float = 90.0) -> bytes:
+    """A PNG screenshot of `url` in headless Chromium, taken once `ready()` holds and two
+    consecutive screenshots agree (the WebGL canvas has settled). Uses the DevTools protocol
+    over a websocket (`websockets` comes with viser)."""
+    import websockets.sync.client as wsc
+
+    user_dir = tempfile.mkdtemp(prefix="sssjax-chromium-")
+    args = [
+        CHROMIUM,
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--use-angle=swiftshader",  # software WebGL
+        "--enable-unsafe-swiftshader",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--hide-scrollbars",
+        "--remote-debugging-port=0",
+        f"--user-data-dir={user_dir}",
+        f"--window-size={size[0]},{size[1]}",
+        url,
+    ]
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    t0 = time.time()
+
+    def waited():
+        assert time.time() - t0 < timeout, "headless chromium timed out"
+        assert proc.poll() is None, f"chromium exited with status {proc.returncode}"
+        time.sleep(0.2)
+
+    try:
+        port_file = Path(user_dir) / "DevToolsActivePort"
+        while not (port_file.exists() and len(port_file.read_text().split()) >= 2):
+            waited()
+        port = int(port_file.read_text().split()[0])
+        pages = []
+        while not pages:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as r:
+                pages = [t for t in json.load(r) if t["type"] == "page"]
+            if not pages:
+                waited()
+        while not ready():
+            waited()
+        with wsc.connect(pages[0]["webSocketDebuggerUrl"], max_size=None) as ws:
+            n = 0
+
+            def call(method, **params):
+                nonlocal n
+                n += 1
+                ws.send(json.dumps({"id": n, "method": method, "params": params}))
+                while True:
+                    msg = json.loads(ws.recv(timeout=timeout))
+                    if msg.get("id") == n:
+                        assert "result" in msg, msg
+                        return msg["result"]
+
+            prev = None
+            while True:
+                # the client warns about software WebGL in a toast: not part of the scene
+                call(
+                    "Runtime.evaluate",
+                    expression="document.querySelectorAll('.mantine-Notification-root')"
+                    ".forEach(e => e.remove())",
+                )
+                png = base64.b64decode(call("Page.captureScreenshot", format="png")["data"])
+                img = _decode_png(png)
+                if prev is not None and prev.shape == img.shape and np.abs(img - prev).mean() < 0.5:
+                    title = call("Runtime.evaluate", expression="document.title")["result"]["value"]
+                    assert title == "Viser", f"not the viewer page: {title!r}"
+                    return png
+                prev = img
+                waited()
+                time.sleep(0.8)
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        shutil.rmtree(user_dir, ignore_errors=True)
+
+
+def test_browser_shows_the_scene(tmp_path):
+    assert os.access(CHROMIUM, os.X_OK), "needs Debian's chromium (make test installs it)"
+    p = Previewer(SCENES / "primitives.toml", port=0).start()
+    try:
+        png = browser_screenshot(p.url, ready=lambda: len(p.server.get_clients()) > 0)
+    finally:
+        p.stop()
+    out = tmp_path / "preview.png"
+    out.write_bytes(png)
+    img = _decode_png(png)
+    h, w, _ = img.shape
+    canvas = img[:, : int(w * 0.7)]  # the GUI panel floats on the right
+    r, g, b = (canvas[..., k] for k in range(3))
+    assert canvas.std() > 15, "blank canvas"
+    colours = {tuple(c) for c in (canvas.reshape(-1, 3) // 16).astype(int)}
+    assert len(colours) > 25, f"only {len(colours)} distinct colours"
+    # the red diffuse cube (albedo 0.6, 0.12, 0.1) is drawn in red
+    red = (r > 140) & (r > 2.0 * g) & (r > 2.0 * b)
+    assert red.sum() > 300, f"{red.sum()} red pixels"
+    # the grey floor (albedo 0.4) fills much of the view
+    grey = (np.abs(r - g) < 12) & (np.abs(g - b) < 15) & (r > 60) & (r < 230)
+    assert grey.mean() > 0.3, f"{grey.mean():.2f} of the canvas is grey floor"
