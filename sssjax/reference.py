@@ -77,6 +77,7 @@ __all__ = [
     "Reference",
     "simulate",
     "simulate_medium",
+    "merge",
     "to_profile",
     "default_edges",
     "single_scatter_total",
@@ -612,15 +613,64 @@ def _finish(tab, edges, n_photons, specular, seconds, inputs) -> Reference:
     )
 
 
+def merge(*refs: Reference) -> Reference:
+    """Pool independent runs of the same problem (different seeds) into one result.
+
+    **Arguments:** `Reference`s with the same inputs, bins and normalisation.
+
+    **Returns:** the photon-weighted means; standard errors combined as independent
+    (`sqrt(sum (N_i se_i)^2) / N`); counts, photons, batches and seconds added.
+    """
+    if not refs:
+        raise ValueError("merge: nothing to merge")
+    a = refs[0]
+    keys = ("sigma_a", "sigma_s", "g", "eta", "theta_i", "normalization", "specular")
+    for b in refs[1:]:
+        if any(getattr(a, k) != getattr(b, k) for k in keys) or not np.array_equal(
+            a.r_edges, b.r_edges
+        ):
+            raise ValueError("merge: the runs differ in their inputs, bins or normalisation")
+    n = np.array([r.n_photons for r in refs], np.float64)
+    total = n.sum()
+    out = {}
+    for name in _TALLIES:
+        if name.endswith("_stderr"):
+            continue
+        vals = [getattr(r, name) for r in refs]
+        ses = [getattr(r, name + "_stderr") for r in refs]
+        out[name] = sum(ni * v for ni, v in zip(n, vals, strict=True)) / total
+        out[name + "_stderr"] = (
+            np.sqrt(sum((ni * e) ** 2 for ni, e in zip(n, ses, strict=True))) / total
+        )
+        if np.ndim(out[name]) == 0:
+            out[name], out[name + "_stderr"] = float(out[name]), float(out[name + "_stderr"])
+    return dataclasses.replace(
+        a,
+        n_photons=int(total),
+        n_batches=sum(r.n_batches for r in refs),
+        counts=sum(r.counts for r in refs),
+        steps_per_photon=float(
+            sum(ni * r.steps_per_photon for ni, r in zip(n, refs, strict=True)) / total
+        ),
+        seconds=float(sum(r.seconds for r in refs)),
+        **out,
+    )
+
+
 # --- colour --------------------------------------------------------------------------------
 def simulate_medium(
-    medium: Medium, *, r_edges: ArrayLike | None = None, seed: int = 0, **kwargs
+    medium: Medium,
+    *,
+    r_edges: ArrayLike | None = None,
+    seed: int = 0,
+    n_per_decade: int = 10,
+    **kwargs,
 ) -> tuple[Reference, Reference, Reference]:
     """`simulate` for each RGB channel of a `Medium` (channel `c` uses seed `seed + c`).
 
-    **Arguments:** `medium`; `r_edges` (mm) shared by the channels (default: `[0]`, then 10
-    logarithmic bins per decade from 0.01 reduced mean free paths of the densest channel to
-    100 of the thinnest); the other keywords as in `simulate`.
+    **Arguments:** `medium`; `r_edges` (mm) shared by the channels (default: `[0]`, then
+    `n_per_decade` logarithmic bins per decade from 0.01 reduced mean free paths of the
+    densest channel to 100 of the thinnest); the other keywords as in `simulate`.
 
     **Returns:** three `Reference`s (R, G, B), per unit incident power.
     """
@@ -631,7 +681,7 @@ def simulate_medium(
     if r_edges is None:
         spt = sa + ss * (1.0 - g)
         lo, hi = 1e-2 / spt.max(), 1e2 / spt.min()
-        n = int(np.ceil(10 * np.log10(hi / lo)))
+        n = int(np.ceil(n_per_decade * np.log10(hi / lo)))
         r_edges = np.concatenate([[0.0], np.geomspace(lo, hi, n + 1)])
     out = tuple(
         simulate(sa[c], ss[c], g[c], eta, r_edges=r_edges, seed=seed + c, **kwargs)

@@ -151,6 +151,14 @@ def test_standard_errors_scale_and_are_honest():
         chi2 = np.sum((x - x.mean()) ** 2 / se**2)
         # chi^2 with 11 degrees of freedom: 0.1% and 99.9% quantiles 2.6 and 31.3
         assert 2.6 < chi2 < 31.3, (attr, chi2)
+    # pooling two runs is as good as one run of their total size
+    pooled = reference.merge(runs[0], runs[1])
+    double = run(20_000, 12)
+    assert 0.8 < pooled.diffuse_stderr / double.diffuse_stderr < 1.25
+    assert abs(pooled.diffuse - double.diffuse) < 4 * math.hypot(
+        pooled.diffuse_stderr, double.diffuse_stderr
+    )
+    assert pooled.n_photons == 20_000 and np.all(pooled.counts == runs[0].counts + runs[1].counts)
     b = int(np.argmax(small.counts * sel))  # a well-populated bin
     x = np.array([r.profile[b] for r in runs])
     se = np.array([r.profile_stderr[b] for r in runs])
