@@ -883,11 +883,14 @@ class Previewer:
             trees.append(raytree(scene, pixel=(x, y), key=scene.render.seed + i))
         tree = merge_trees(trees)
         self.tree = tree
-        self._draw_tree(tree)
+        self.draw_raytree(tree)
         self._status(f"ray tree of pixel ({x}, {y}): {len(tree.kind)} rays")
         return tree
 
-    def _draw_tree(self, tree) -> None:
+    def draw_raytree(self, tree) -> None:
+        """Draw a `RayTree` (replacing the previous one): a line-segment node per kind,
+        `/raytree/KIND`, and dipole sample points in four size classes by weight,
+        `/raytree/dipole/points{0..3}`; the legend shows the counts."""
         for name in [n for n in self.nodes if n.startswith("/raytree/")]:
             self.nodes.pop(name).remove()
         kind = np.asarray(tree.kind)
@@ -976,9 +979,10 @@ def merge_trees(trees: list):
 
 def serve(path: str | Path, *, host: str = "127.0.0.1", port: int = 8080) -> None:
     """Run the previewer of a scene file until Ctrl-C (the `sssjax preview` command)."""
-    p = Previewer(path, host=host, port=port).start()
-    print(f"sssjax preview: open {p.url} in a browser (Ctrl-C to stop)", flush=True)
+    p = Previewer(path, host=host, port=port)
     try:
+        p.start()
+        print(f"sssjax preview: open {p.url} in a browser (Ctrl-C to stop)", flush=True)
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:

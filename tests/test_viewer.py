@@ -29,7 +29,15 @@ import pytest
 from sssjax import load_scene
 from sssjax.camera import camera_rays
 from sssjax.imageio import read_image, srgb_encode
-from sssjax.viewer import Previewer, camera_wxyz, save_paths, scene_meshes
+from sssjax.raytree import RayTree
+from sssjax.viewer import (
+    RAY_COLORS,
+    Previewer,
+    camera_wxyz,
+    merge_trees,
+    save_paths,
+    scene_meshes,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "scenes"
@@ -218,6 +226,7 @@ def test_use_this_view(prims):
     assert prims.pixel_at(view.position, -want) is None  # behind the camera
 
 
+@pytest.mark.slow
 def test_render_and_save_never_overwrites(cube, tmp_path):
     view = FakeView((60.0, 40.0, 90.0), (0.0, 8.0, 0.0), (0.0, 1.0, 0.0), math.radians(40.0), 1.0)
     cam = cube.use_view(view, height=16)
@@ -242,6 +251,15 @@ def test_render_and_save_never_overwrites(cube, tmp_path):
     assert cube.controls["progress"].value == 100.0
     assert cube.image_handle.image.shape == (16, 16, 3)  # shown in the panel
     assert "/render_image" in cube.nodes  # and on the image plane in 3D
+
+    # the ray tree of a pixel is that of this render: its radiance is the rendered pixel's
+    tree = cube.show_raytree((8, 9))
+    assert tree.counts()["camera"] == 1  # spp 1
+    np.testing.assert_allclose(tree.radiance, image[9, 8], rtol=2e-3, atol=1e-5)
+    cam_node = cube.nodes["/raytree/camera"]
+    np.testing.assert_allclose(cam_node.points[0, 0], cam.origin, atol=1e-3)
+    with pytest.raises(ValueError, match="outside"):
+        cube.show_raytree((16, 0))
 
     scene_bytes = (SCENES / "marble_cube.toml").read_bytes()
     first = cube.save(tmp_path / "view")
@@ -270,15 +288,98 @@ def test_render_and_save_never_overwrites(cube, tmp_path):
 
 
 def test_opacity_slider(prims):
-    prims.set_opacity(0.3)
+    prims.controls["opacity"].value = 0.3  # as the browser's slider does
     for m in scene_meshes(prims.scene, prims.resolution):
         if m.style == "matte":
             assert prims.nodes[m.name].opacity == pytest.approx(0.3)
         elif m.style == "mirror":
             mat = _glb_mesh(prims.nodes[m.name].glb_data).visual.material
             assert mat.baseColorFactor[3] == pytest.approx(0.3 * 255, abs=1)
-    prims.set_opacity(1.0)
+    prims.controls["opacity"].value = 1.0
     assert prims.nodes["/shapes/1_cube_red"].opacity is None
+
+
+def _tree(shift: float = 0.0, spp: int = 2) -> RayTree:
+    """A hand-made tree: 2 camera rays, 1 reflection, 3 lit shadow rays, one single-scattering
+    path, and 5 dipole points."""
+    kind = np.array([0, 0, 1, 2, 2, 2, 4, 5])
+    n = len(kind)
+    origin = np.arange(n * 3, dtype=float).reshape(n, 3) + shift
+    end = origin + np.array([0.0, 1.0, 0.0])
+    return RayTree(
+        pixel=(3, 4),
+        spp=spp,
+        radiance=np.array([0.1, 0.2, 0.3]) + shift,
+        origin=origin,
+        end=end,
+        kind=kind,
+        depth=np.array([0, 0, 1, 0, 1, 0, 0, 0]),
+        sample=np.array([0, 1, 1, 0, 1, 1, 0, 0]),
+        parent=np.array([-1, -1, 1, 0, 2, 1, 0, 6]),
+        miss=np.zeros(n, bool),
+        points=np.arange(15, dtype=float).reshape(5, 3),
+        point_weight=np.array([1.0, 0.5, 0.001, 0.0, 0.2]),
+        point_sample=np.array([0, 0, 1, 1, 1]),
+    )
+
+
+def test_raytree_drawing_and_toggles(prims):
+    import sssjax.raytree
+
+    # the same colours as the pictures of `sssjax raytree`
+    for kind, hexc in sssjax.raytree.COLORS.items():
+        assert "#{:02x}{:02x}{:02x}".format(*RAY_COLORS[kind]) == hexc
+    tree = _tree()
+    prims.draw_raytree(tree)
+    drawn = {n for n in prims.nodes if n.startswith("/raytree/")}
+    assert drawn == {
+        "/raytree/camera",
+        "/raytree/reflected",
+        "/raytree/shadow",
+        "/raytree/ss_refracted",
+        "/raytree/ss_light",
+        "/raytree/dipole/points1",
+        "/raytree/dipole/points2",
+        "/raytree/dipole/points3",
+    }
+    shadow = prims.nodes["/raytree/shadow"]
+    np.testing.assert_allclose(shadow.points[:, 0], tree.origin[3:6], atol=1e-5)
+    np.testing.assert_allclose(shadow.points[:, 1], tree.end[3:6], atol=1e-5)
+    assert tuple(np.asarray(shadow.colors).reshape(-1, 3)[0]) == RAY_COLORS["shadow"]
+    assert tuple(np.asarray(prims.nodes["/raytree/camera"].colors).reshape(-1, 3)[0]) == (255,) * 3
+    # points sized by weight: 1.0 -> largest class, 0.5, 0.2 smaller; 0.001 and 0 not drawn
+    sizes = [prims.nodes[f"/raytree/dipole/points{b}"].point_size for b in (1, 2, 3)]
+    assert sizes[0] < sizes[1] < sizes[2]
+    np.testing.assert_allclose(prims.nodes["/raytree/dipole/points3"].points, [[0, 1, 2]])
+    legend = prims.controls["legend"].content
+    assert ">3</td>" in legend and "3 of 4" in legend
+    prims.controls["show_shadow"].value = False  # the toggle of a kind
+    assert prims.nodes["/raytree/shadow"].visible is False
+    assert prims.nodes["/raytree/camera"].visible is True
+    prims.controls["show_dipole"].value = False
+    assert not any(prims.nodes[f"/raytree/dipole/points{b}"].visible for b in (1, 2, 3))
+    prims.controls["show_shadow"].value = True
+    prims.controls["show_dipole"].value = True
+    prims.draw_raytree(_tree(spp=1))  # a new tree replaces the old one
+    assert sum(n.startswith("/raytree/") for n in prims.nodes) == 8
+
+
+def test_merge_trees_of_passes():
+    a, b = _tree(0.0), _tree(100.0)
+    m = merge_trees([a, b])
+    assert m.spp == 4 and len(m.kind) == 16 and len(m.points) == 10
+    np.testing.assert_array_equal(m.sample, np.concatenate([a.sample, b.sample + 2]))
+    np.testing.assert_array_equal(
+        m.point_sample, np.concatenate([a.point_sample, b.point_sample + 2])
+    )
+    # parents still point at the segment whose end the child starts from
+    child = m.parent >= 0
+    np.testing.assert_array_equal(
+        m.origin[child][:, 0] // 100, m.origin[m.parent[child]][:, 0] // 100
+    )
+    np.testing.assert_array_equal(m.parent[8:][b.parent >= 0], b.parent[b.parent >= 0] + 8)
+    np.testing.assert_allclose(m.radiance, (a.radiance + b.radiance) / 2)
+    assert merge_trees([a]) is a
 
 
 # --- the command line -------------------------------------------------------------------
