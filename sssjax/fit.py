@@ -294,6 +294,11 @@ def fit(
         progress=progress,
     )
     run = _solve(data, y0, **fn_kw)
+    if weighting == "relative":
+        # weights from the target's own noisy values favour pixels whose noise happens to be
+        # low and so bias the fit (by about the pixels' relative variance); refit with
+        # weights from the fitted model instead, which does not share the target's noise
+        run = _solve(data, run["y"], weights_at=run["y"], **fn_kw)
     trace_sd = None
     if refine:
         t0 = time.perf_counter()
@@ -301,10 +306,11 @@ def fit(
         trace_time += time.perf_counter() - t0
         if progress:
             print("refine: fit a fresh trace from the solution", file=sys.stderr, flush=True)
-        other = _solve([fresh], run["y"], **fn_kw)
+        w_at = run["y"] if weighting == "relative" else None
+        other = _solve([fresh], run["y"], weights_at=w_at, **fn_kw)
         if progress:
             print("refine: joint fit of both traces", file=sys.stderr, flush=True)
-        joint = _solve(data + [fresh], 0.5 * (run["y"] + other["y"]), **fn_kw)
+        joint = _solve(data + [fresh], 0.5 * (run["y"] + other["y"]), weights_at=w_at, **fn_kw)
         # two single-trace solutions differ by trace noise alone (same target): their
         # half-difference estimates the trace-noise error of the joint (mean) solution
         trace_sd = 0.5 * np.abs(np.asarray(run["y"] - other["y"], dtype=np.float64))
@@ -323,7 +329,15 @@ def fit(
     warnings = []
     try:
         cond = np.linalg.cond(JtJ)
-        cov_log = s2 * np.linalg.inv(JtJ)
+        inv = np.linalg.inv(JtJ)
+        cov_log = s2 * inv
+        # the pixels' noise is far from uniform (steep profile regions are noisier), and the
+        # information sits in particular pixels: the heteroscedasticity-consistent
+        # "sandwich" covariance (White 1980) is honest then; take the larger of the two
+        cov_hc = inv @ ((J * (r**2 * r.size / dof)[:, None]).T @ J) @ inv  # HC1
+        scale_hc = np.sqrt(np.clip(np.diag(cov_hc), 0, None) / np.diag(cov_log))
+        scale_hc = np.maximum(np.nan_to_num(scale_hc, nan=1.0), 1.0)
+        cov_log = cov_log * np.outer(scale_hc, scale_hc)
         if not np.isfinite(cond) or cond > 1e12:
             warnings.append(
                 f"the covariance is near-singular (condition number {cond:.2g}): some "
@@ -424,8 +438,12 @@ def _solve(
     rel_floor,
     names,
     progress,
+    weights_at=None,
 ):
-    """Run the solver on the traces in `data` (fitted jointly) from `y0` (log parameters)."""
+    """Run the solver on the traces in `data` (fitted jointly) from `y0` (log parameters).
+
+    With relative weighting, each pixel's weight is `1 / (value / mean + rel_floor)` with
+    `value` the target's, or the model's at `weights_at` when given."""
     tgt_flat = np.concatenate([d["tgt"] for d in data])
     base = np.concatenate([d["base"] for d in data])
     sub = jax.tree_util.tree_map(
@@ -433,10 +451,6 @@ def _solve(
         *[d["sub"] for d in data],
     )
     scale = float(np.mean(np.abs(tgt_flat))) or 1.0  # residuals in units of the mean level
-    if weighting == "relative":
-        wts = 1.0 / (np.abs(tgt_flat) / scale + rel_floor)
-    else:
-        wts = np.ones_like(tgt_flat)
     order = data[0]["materials"]
     dt = jnp.float32 if jnp.asarray(y0).dtype == jnp.float32 else jnp.float64
     args = (
@@ -447,8 +461,14 @@ def _solve(
         scale,
         jnp.asarray(loss_scale, dtype=dt),
         jnp.asarray(base / scale, dtype=dt),
-        jnp.asarray(wts, dtype=dt),
+        jnp.ones(tgt_flat.shape, dtype=dt),
     )
+    if weighting == "relative":
+        if weights_at is None:
+            level = np.abs(tgt_flat) / scale
+        else:
+            level = np.abs(np.asarray(_model(free, order, exposure, weights_at, args)))
+        args = (*args[:7], jnp.asarray(1.0 / (level + rel_floor), dtype=dt))
     residuals = _residual_fn(free, order, loss, exposure)
     if solver in ("lm", "gn"):
         slv = (optx.LevenbergMarquardt if solver == "lm" else optx.GaussNewton)(rtol, atol)
@@ -477,9 +497,10 @@ def _solve(
             break
         # float32 shading puts a floor under the loss; optimistix's Cauchy test may keep
         # taking rejected LM steps there. Stop once the loss has stalled after progress
-        # (or, when starting at the solution, has not moved at all).
-        if n >= 3 and (lval < 0.5 * loss0 or lval >= 0.999 * loss0):
-            recent = [h["loss"] for h in history[-4:]]
+        # (or, when starting at the solution, has not moved for 8 steps).
+        window = 4 if lval < 0.5 * loss0 else 8
+        if n >= window - 1:
+            recent = [h["loss"] for h in history[-window:]]
             if max(recent) - min(recent) <= rtol * max(recent):
                 result = optx.RESULTS.successful
                 stalled = True
@@ -492,7 +513,7 @@ def _solve(
     )
     message = optx.RESULTS[result] if not converged else "converged"
     if stalled:
-        message = "converged (loss unchanged to rtol over the last 3 steps)"
+        message = "converged (loss unchanged to rtol over the last steps)"
     if not converged and not message:
         message = f"no convergence within {max_steps} steps"
     return dict(
@@ -527,15 +548,20 @@ def _media_of(free, order, y, media0):
 
 # The residual and solver functions are cached per parameter layout, and the data travel as
 # `args`, so a second fit of the same layout reuses the compiled step.
+@eqx.filter_jit
+def _model(free, order, exposure, y, args):
+    """The fitted pixels' radiance at log-parameters `y`, in units of the target's mean."""
+    sub, _, r_nodes, media0, scale, _, base_j, _ = args
+    L = shade_sss(sub, _media_of(free, order, y[: 3 * len(free)], media0), r_nodes)
+    model = L / scale + base_j
+    return jnp.exp(y[-1]) * model if exposure else model
+
+
 @functools.lru_cache(maxsize=32)
 def _residual_fn(free, order, loss: str = "l2", exposure: bool = False):
     def residuals(y, args):
-        sub, target_j, r_nodes, media0, scale, c, base_j, wts = args
-        L = shade_sss(sub, _media_of(free, order, y[: 3 * len(free)], media0), r_nodes)
-        model = L / scale + base_j
-        if exposure:
-            model = jnp.exp(y[-1]) * model
-        r = ((model - target_j) * wts).reshape(-1)
+        target_j, c, wts = args[1], args[5], args[7]
+        r = ((_model(free, order, exposure, y, args) - target_j) * wts).reshape(-1)
         # robust losses as residual transforms r -> sign(r) sqrt(2 rho(r)): least squares on
         # the transformed residuals minimises sum rho(r)
         if loss == "cauchy":
