@@ -625,6 +625,8 @@ class Previewer:
 
         **Returns:** the new render `Camera`.
         """
+        if height is not None and "height" in self.controls:
+            self.controls["height"].value = int(height)
         if height is None:
             height = (
                 int(self.controls["height"].value)
@@ -875,6 +877,8 @@ class Previewer:
         cam = self.camera
         if not (0 <= x < cam.width and 0 <= y < cam.height):
             raise ValueError(f"pixel ({x}, {y}) is outside the {cam.width}x{cam.height} image")
+        if "px" in self.controls:
+            self.controls["px"].value, self.controls["py"].value = x, y
         scene = self.render_scene()
         n_pass = self._render_cache[2]
         trees = []
@@ -934,7 +938,7 @@ class Previewer:
                         node,
                         pts[sel].astype(np.float32),
                         POINT_COLOR,
-                        point_size=0.002 * self.extent * (b + 1),
+                        point_size=0.001 * self.extent * (b + 1),
                         point_shape="circle",
                         precision="float32",
                         visible=shown("dipole"),

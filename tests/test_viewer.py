@@ -324,10 +324,10 @@ def _tree(shift: float = 0.0, spp: int = 2) -> RayTree:
 
 
 def test_raytree_drawing_and_toggles(prims):
-    import sssjax.raytree
+    from sssjax.raytree import COLORS
 
     # the same colours as the pictures of `sssjax raytree`
-    for kind, hexc in sssjax.raytree.COLORS.items():
+    for kind, hexc in COLORS.items():
         assert "#{:02x}{:02x}{:02x}".format(*RAY_COLORS[kind]) == hexc
     tree = _tree()
     prims.draw_raytree(tree)
