@@ -436,6 +436,13 @@ def _decode_png(data: bytes) -> np.ndarray:
     return np.rint(srgb_encode(np.clip(linear, 0, 1)) * 255.0)
 
 
+_FRAMES = """new Promise(done => {
+  let n = 0;
+  const step = () => (++n >= 4 ? done(n) : requestAnimationFrame(step));
+  requestAnimationFrame(step);
+})"""
+
+
 def browser_screenshot(url: str, ready, size=(1100, 760), timeout: float = 90.0) -> bytes:
     """A PNG screenshot of `url` in headless Chromium, taken once `ready()` holds and two
     consecutive screenshots agree (the WebGL canvas has settled). Uses the DevTools protocol
@@ -503,6 +510,8 @@ def browser_screenshot(url: str, ready, size=(1100, 760), timeout: float = 90.0)
                     expression="document.querySelectorAll('.mantine-Notification-root')"
                     ".forEach(e => e.remove())",
                 )
+                # let the page draw a few new frames, so that no screenshot is a stale frame
+                call("Runtime.evaluate", expression=_FRAMES, awaitPromise=True)
                 png = base64.b64decode(call("Page.captureScreenshot", format="png")["data"])
                 img = _decode_png(png)
                 if prev is not None and prev.shape == img.shape and np.abs(img - prev).mean() < 0.5:
