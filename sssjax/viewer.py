@@ -371,6 +371,7 @@ class Previewer:
         self.extent = _scene_extent(self.scene)
         self._lock = threading.Lock()
         self._render_cache: tuple | None = None
+        self._rendered: tuple | None = None  # (scene, camera) of the image
         self._opacity = 1.0
 
     # -- lifecycle -----------------------------------------------------------------------
@@ -412,7 +413,7 @@ class Previewer:
         sc.set_up_direction(tuple(float(x) for x in cam.up))
         ic = self.server.initial_camera
         # start a step behind the scene camera, so that its frustum is in view
-        fwd, right, _ = cam.basis()
+        _, right, _ = cam.basis()
         dist = float(np.linalg.norm(cam.origin - cam.target))
         eye = cam.target + 1.5 * (cam.origin - cam.target) + dist * (0.5 * right + 0.3 * up)
         ic.position = tuple(float(x) for x in eye)
@@ -646,6 +647,9 @@ class Previewer:
             self._add_camera("/camera/render", self.camera, _RENDER_CAMERA_RGB)
             self.controls["px"].value = self.camera.width // 2
             self.controls["py"].value = self.camera.height // 2
+            old = self.nodes.pop("/render_image", None)  # it belongs to the previous camera
+            if old is not None:
+                old.remove()
             self._status("view taken; press Render")
         return self.camera
 
@@ -697,7 +701,8 @@ class Previewer:
             for i in range(n_pass):
                 seed = scene.render.seed + i
                 self._status(
-                    f"rendering pass {i + 1}/{n_pass} ({'compiling, ' if i == 0 else ''}{time.perf_counter() - t0:.1f} s)"
+                    f"rendering pass {i + 1}/{n_pass}, {time.perf_counter() - t0:.0f} s"
+                    + (" (new settings compile first)" if i == 0 else "")
                 )
                 img = np.asarray(render(scene, seed), dtype=np.float64)
                 acc = img if acc is None else acc + img
@@ -707,6 +712,7 @@ class Previewer:
                 self._show_image()
             dt = time.perf_counter() - t0
             cam = scene.camera
+            self._rendered = (scene, self.camera)
             self.image_meta = {
                 "scene": self.scene.path or "<dict>",
                 "spp": spp,
@@ -844,11 +850,11 @@ class Previewer:
             path = self.controls["output"].value if "output" in self.controls else self.output
         protect = [self.scene.path] if self.scene.path else []
         paths = save_paths(path, protect)
-        scene = self._render_cache[1]
+        scene, camera = self._rendered  # what the image shows, whatever changed since
         meta = dict(self.image_meta, version=__version__, units="radiance; lengths mm")
         text = scene_toml(
             self.scene,
-            self.camera,
+            camera,
             spp=int(self.image_meta.get("spp", scene.render.spp)),
             light_samples=int(scene.render.light_samples),
             sss_enabled=bool(scene.sss.enabled),

@@ -282,6 +282,12 @@ def test_render_and_save_never_overwrites(cube, tmp_path):
     assert third["png"].name == "other_1.png"
     assert (tmp_path / "other.exr").read_bytes() == b"precious"
     assert (SCENES / "marble_cube.toml").read_bytes() == scene_bytes
+    # a new view after the render: the image and the saved camera stay those of the render
+    cube.use_view(FakeView((0.0, 90.0, 60.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 0.5, 2.0), 8)
+    assert "/render_image" not in cube.nodes
+    later = load_scene(cube.save(tmp_path / "later")["toml"])
+    np.testing.assert_allclose(later.camera.origin, cam.origin)
+    assert (later.camera.width, later.camera.height) == (16, 16)
     protected = tmp_path / "mine.toml"
     protected.write_text("x")
     assert save_paths(tmp_path / "mine")["toml"].name == "mine_1.toml"
