@@ -449,10 +449,14 @@ _FRAMES = """new Promise(done => {
 })"""
 
 
-def browser_screenshot(url: str, ready, size=(1100, 760), timeout: float = 90.0) -> bytes:
+def browser_screenshot(
+    url: str, ready, size=(1100, 760), timeout: float = 90.0, then=None
+) -> bytes:
     """A PNG screenshot of `url` in headless Chromium, taken once `ready()` holds and two
     consecutive screenshots agree (the WebGL canvas has settled). Uses the DevTools protocol
-    over a websocket (`websockets` comes with viser)."""
+    over a websocket (`websockets` comes with viser). `then(evaluate)`, if given, runs after
+    the screenshot while the page is still open; `evaluate(js)` returns the expression's
+    value."""
     import websockets.sync.client as wsc
 
     user_dir = tempfile.mkdtemp(prefix="sssjax-chromium-")
@@ -523,6 +527,12 @@ def browser_screenshot(url: str, ready, size=(1100, 760), timeout: float = 90.0)
                 if prev is not None and prev.shape == img.shape and np.abs(img - prev).mean() < 0.5:
                     title = call("Runtime.evaluate", expression="document.title")["result"]["value"]
                     assert title == "Viser", f"not the viewer page: {title!r}"
+                    if then is not None:
+                        then(
+                            lambda js: call("Runtime.evaluate", expression=js, returnByValue=True)[
+                                "result"
+                            ]["value"]
+                        )
                     return png
                 prev = img
                 waited()
@@ -540,10 +550,38 @@ def browser_screenshot(url: str, ready, size=(1100, 760), timeout: float = 90.0)
 def test_browser_shows_the_scene(tmp_path):
     assert os.access(CHROMIUM, os.X_OK), "needs Debian's chromium (make test installs it)"
     p = Previewer(SCENES / "primitives.toml", port=0).start()
+    before = p.camera
+    ic = p.server.initial_camera  # the view the page opens with
+    eye, centre = np.array(ic.position), np.array(ic.look_at)
+    clicked = {}
+
+    def use_this_view(evaluate):
+        # press "Use this view" in the page: the browser's camera becomes the render camera
+        clicked["size"] = evaluate("[window.innerWidth, window.innerHeight]")
+        found = evaluate(
+            "(() => { const b = [...document.querySelectorAll('button')]"
+            ".find(b => b.textContent.trim() === 'Use this view');"
+            " if (b) b.click(); return !!b; })()"
+        )
+        assert found is True
+        t0 = time.time()
+        while p.camera is before and time.time() - t0 < 20:
+            time.sleep(0.1)
+
     try:
-        png = browser_screenshot(p.url, ready=lambda: len(p.server.get_clients()) > 0)
+        png = browser_screenshot(
+            p.url, ready=lambda: len(p.server.get_clients()) > 0, then=use_this_view
+        )
     finally:
         p.stop()
+    cam = p.camera
+    assert cam is not before, "the click on 'Use this view' did not reach the server"
+    np.testing.assert_allclose(cam.origin, eye, atol=0.05)  # where the page looked from
+    np.testing.assert_allclose(cam.target, centre, atol=0.05)
+    assert cam.fov == pytest.approx(35.0, abs=0.01)  # the scene's fov, given to the page
+    assert cam.height == 240  # the panel's "Height (px)"
+    w_px, h_px = clicked["size"]
+    assert cam.width / cam.height == pytest.approx(w_px / h_px, rel=0.01)
     out = tmp_path / "preview.png"
     out.write_bytes(png)
     img = _decode_png(png)
