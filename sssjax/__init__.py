@@ -9,6 +9,7 @@ Public API:
 - `load_scene`: a scene from a TOML file or a dict.
 - `trace`, `shade`, `render`: the geometric pass, the differentiable pass, and both.
 - `imageio`: `read_image` / `write_image` through OpenImageIO.
+- `raytree`: every ray the renderer casts for one pixel (`RayTree`).
 - `fit`: recover `sigma_a`, `sigma_s` from a target image (trace once, shade per step).
 """
 
@@ -16,6 +17,7 @@ from . import dipole, imageio
 from ._version import __version__
 from .fit import FitResult, fit
 from .media import PRESETS, Medium, preset, preset_names
+from .raytree import RayTree, raytree
 from .render import render
 from .scene import Scene, SceneError, load_scene
 from .shade import shade, shade_image
@@ -36,6 +38,8 @@ __all__ = [
     "shade",
     "shade_image",
     "render",
+    "raytree",
+    "RayTree",
     "Transport",
     "fit",
     "FitResult",

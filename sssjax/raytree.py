@@ -27,11 +27,18 @@ parent ends. Dipole samples are also kept as points with their gather weight (th
 pixel's samples gathers from (the cloud itself is shared by all pixels; its own shadow rays
 are not part of any pixel's tree, and points within the near-field radius have weight 0
 because the near-field disc replaces them), for the Monte Carlo strategies the sampled
-points. Not drawn: the inside ray that measures an object's thickness for single scattering.
+points; with beam lights also the beam's entry points each sample gathers from (weighted by
+the power they carry in). Not recorded: the inside ray that measures an object's thickness
+for single scattering, and the rays that build the shared cloud and beam points.
+
+The first tree of a scene configuration is slow (each operation of the eager run is compiled
+once: about 20-30 s of CPU time on 2 cores); later trees of the same scene take a fraction
+of a second.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -58,6 +65,7 @@ COLORS = {
     "dipole": "#3050c0",
 }
 POINT_COLOR = "#00e5ff"
+POINT_MIN_WEIGHT = 0.01  # points lighter than this fraction of the heaviest are not drawn
 
 
 @dataclass(frozen=True, eq=False)
@@ -348,12 +356,13 @@ class _Recorder:
 _SEG_FIELDS = ("origin", "end", "kind", "depth", "sample", "parent", "miss")
 
 
-@jax.jit
-def _shade_sss(terms, media, r_nodes):
-    """`shade_sss` compiled (the shading of the recorded terms; no rays are cast there)."""
+@functools.partial(jax.jit, static_argnames="profile")
+def _shade_sss(terms, media, r_nodes, profile=None):
+    """`shade_sss` compiled (the shading of the recorded terms; no rays are cast there), with
+    the scene's diffusion profile as `Renderer` uses it."""
     from .shade import shade_sss
 
-    return shade_sss(terms, media, r_nodes)
+    return shade_sss(terms, media, r_nodes, **({} if profile is None else {"profile": profile}))
 
 
 def scene_extent(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
@@ -448,7 +457,8 @@ def raytree(
         rec.begin(np.arange(r.block * S) // S == j)
         terms = rt._sss_block({f: jnp.asarray(v) for f, v in blk.items()}, k_blk, cloud)
         media = tuple(scene.media()[n] for n in tr.tmat_names)
-        Ls = _shade_sss(terms, media, jnp.asarray(tr.r_nodes, dtype=float))
+        profile = getattr(scene.sss, "profile", None)
+        Ls = _shade_sss(terms, media, jnp.asarray(tr.r_nodes, dtype=float), profile=profile)
         L = L + np.asarray(Ls)[j]
     rt._rec = None
     return rec.tree((x, y), L)
@@ -467,8 +477,8 @@ def _clip_front(a: np.ndarray, b: np.ndarray, z_a, z_b, near: float):
 
 def _style(kcode: int) -> dict:
     if kcode == SHADOW_BLOCKED:
-        return dict(linewidths=0.9, alpha=0.9, linestyles=(0, (3, 2)))
-    return dict(linewidths=0.9, alpha=0.85)
+        return dict(linewidths=0.9, alpha=0.9, linestyles=(0, (3, 2)), zorder=2)
+    return dict(linewidths=1.1 if kcode in (SS_REFRACTED, SS_LIGHT) else 0.9, alpha=0.9, zorder=2)
 
 
 def plot_raytree(
@@ -478,6 +488,7 @@ def plot_raytree(
     *,
     image: np.ndarray | None = None,
     note: str = "",
+    dpi: int = 110,
 ) -> Path:
     """Draw `tree` over `image` (linear RGB seen by the scene camera, any resolution) and in a
     side view (orthographic, looking along the camera's right axis), coloured by kind.
@@ -500,8 +511,15 @@ def plot_raytree(
     scale = float(np.linalg.norm(hi - lo))
     counts = tree.counts()
 
-    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(14, 6.2), facecolor="#111111")
-    for ax in (ax0, ax1):
+    close_up = bool(np.any(tree.of_kind("ss_refracted", "ss_light", "dipole")))
+    if close_up:
+        fig, (ax0, ax1, ax2) = plt.subplots(
+            1, 3, figsize=(19, 6.6), facecolor="#111111", width_ratios=(1.35, 1, 1)
+        )
+    else:
+        fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(14, 6.6), facecolor="#111111")
+        ax2 = None
+    for ax in (ax0, ax1, ax2) if close_up else (ax0, ax1):
         ax.set_facecolor("#1b1b1b")
         ax.tick_params(colors="#bbbbbb", labelsize=8)
         for s in ax.spines.values():
@@ -524,13 +542,16 @@ def plot_raytree(
         if s.any():
             segs = np.stack([pa[s], pb[s]], axis=1)
             ax0.add_collection(LineCollection(segs, colors=COLORS[KINDS[kcode]], **_style(kcode)))
+    # dipole points: area ~ weight; those under 1% of the heaviest are left out
     wmax = float(tree.point_weight.max()) if tree.point_weight.size else 0.0
-    sizes = 2.0 + 40.0 * (tree.point_weight / wmax if wmax > 0 else 0.0 * tree.point_weight)
-    if tree.points.size:
-        zp = (tree.points - org) @ fwd
+    heavy = tree.point_weight >= POINT_MIN_WEIGHT * wmax if wmax > 0 else tree.point_weight > 0
+    pts = tree.points[heavy]
+    sizes = 0.3 + 12.0 * tree.point_weight[heavy] / (wmax if wmax > 0 else 1.0)
+    if len(pts):
+        zp = (pts - org) @ fwd
         ok = zp > 0 if cam.projection != "orthographic" else np.ones(len(zp), bool)
-        pp = np.asarray(project(cam, jnp.asarray(tree.points)), float)
-        ax0.scatter(*pp[ok].T, s=sizes[ok], c=POINT_COLOR, alpha=0.6, linewidths=0)
+        pp = np.asarray(project(cam, jnp.asarray(pts)), float)
+        ax0.scatter(*pp[ok].T, s=sizes[ok], c=POINT_COLOR, alpha=0.35, linewidths=0, zorder=1)
     x, y = tree.pixel
     ax0.add_patch(plt.Rectangle((x, y), 1, 1, fill=False, ec="#ffff00", lw=1.2))
     ax0.set_xlim(0, W)
@@ -538,53 +559,59 @@ def plot_raytree(
     ax0.set_aspect("equal")
     ax0.set_title(f"camera view{(' — ' + note) if note else ''}", color="#dddddd", fontsize=10)
 
-    # -- side view: orthographic along the camera's right axis ----------------------------
+    # -- side views: orthographic along the camera's right axis ---------------------------
     def side(p):
         v = np.asarray(p, float) - org
         return np.stack([v @ fwd, v @ up], axis=-1)
 
+    meshes = []
     for s in scene.shapes:
         v, tris = s.shape.tessellate(24)
         e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-        e = np.unique(np.sort(e, axis=1), axis=0)
-        sv = side(v)
-        ax1.add_collection(
-            LineCollection(sv[e], colors="#8a8a8a", linewidths=0.3, alpha=0.35, zorder=0)
-        )
-    for light in scene.lights:
-        if hasattr(light, "edge_u"):
-            c = np.asarray(light.corner, float)
-            eu, ev = np.asarray(light.edge_u, float), np.asarray(light.edge_v, float)
-            q = side(np.stack([c, c + eu, c + eu + ev, c + ev, c]))
-            ax1.plot(*q.T, color="#ffd700", lw=1.5)
-        elif hasattr(light, "position"):
-            q = side(np.asarray(light.position, float)[None])[0]
-            ax1.plot(*q, marker="*", color="#ffd700", ms=10)
-    ax1.plot(0, 0, marker=">", color="#ffffff", ms=9)
+        meshes.append(side(v)[np.unique(np.sort(e, axis=1), axis=0)])
     so, se = side(tree.origin), side(tree.end)
-    for kcode in order:
-        s = tree.kind == kcode
-        if s.any():
-            ax1.add_collection(
-                LineCollection(
-                    np.stack([so[s], se[s]], axis=1),
-                    colors=COLORS[KINDS[kcode]],
-                    **_style(kcode),
-                )
+
+    def draw_side(ax, lo2, hi2, title):
+        for m in meshes:
+            ax.add_collection(
+                LineCollection(m, colors="#8a8a8a", linewidths=0.3, alpha=0.35, zorder=0)
             )
-    if tree.points.size:
-        sp = side(tree.points)
-        ax1.scatter(*sp.T, s=sizes, c=POINT_COLOR, alpha=0.6, linewidths=0)
-    # limits: the tree's hit points (not the ends of escaped rays), the camera and points
+        for light in scene.lights:
+            if hasattr(light, "edge_u"):
+                c = np.asarray(light.corner, float)
+                eu, ev = np.asarray(light.edge_u, float), np.asarray(light.edge_v, float)
+                q = side(np.stack([c, c + eu, c + eu + ev, c + ev, c]))
+                ax.plot(*q.T, color="#ffd700", lw=1.5)
+            elif hasattr(light, "position"):
+                q = side(np.asarray(light.position, float)[None])[0]
+                ax.plot(*q, marker="*", color="#ffd700", ms=10)
+        ax.plot(0, 0, marker=">", color="#ffffff", ms=9)
+        for kcode in order:
+            s = tree.kind == kcode
+            if s.any():
+                segs = np.stack([so[s], se[s]], axis=1)
+                ax.add_collection(
+                    LineCollection(segs, colors=COLORS[KINDS[kcode]], **_style(kcode))
+                )
+        if len(pts):
+            ax.scatter(*side(pts).T, s=sizes, c=POINT_COLOR, alpha=0.35, linewidths=0, zorder=1)
+        pad = 0.08 * max(float(np.max(hi2 - lo2)), 1e-3)
+        ax.set_xlim(lo2[0] - pad, hi2[0] + pad)
+        ax.set_ylim(lo2[1] - pad, hi2[1] + pad)
+        ax.set_aspect("equal", adjustable="box")
+        ax.set_xlabel("along the camera axis [mm]", color="#bbbbbb", fontsize=9)
+        ax.set_ylabel("camera up [mm]", color="#bbbbbb", fontsize=9)
+        ax.set_title(title, color="#dddddd", fontsize=10)
+
+    # the whole tree: its hit points (not the ends of escaped rays), the camera and points
     fin = np.concatenate([so, se[~tree.miss], side(tree.points), np.zeros((1, 2))])
-    lo2, hi2 = fin.min(axis=0), fin.max(axis=0)
-    pad = 0.08 * max(float(np.max(hi2 - lo2)), 1.0)
-    ax1.set_xlim(lo2[0] - pad, hi2[0] + pad)
-    ax1.set_ylim(lo2[1] - pad, hi2[1] + pad)
-    ax1.set_aspect("equal", adjustable="box")
-    ax1.set_xlabel("along the camera axis [mm]", color="#bbbbbb", fontsize=9)
-    ax1.set_ylabel("camera up [mm]", color="#bbbbbb", fontsize=9)
-    ax1.set_title("side view (orthographic, camera at the left)", color="#dddddd", fontsize=10)
+    draw_side(ax1, fin.min(axis=0), fin.max(axis=0), "side view (orthographic, camera at left)")
+    if ax2 is not None:
+        sub = tree.of_kind("ss_refracted", "ss_light", "dipole")
+        c = np.concatenate([so[sub], se[sub]]).mean(axis=0)
+        ends = np.concatenate([so[sub], se[sub]])
+        half = max(1.2 * float(np.max(np.abs(ends - c))), 0.5)
+        draw_side(ax2, c - half, c + half, "close-up of the subsurface paths (side view)")
 
     handles = [
         Line2D(
@@ -606,7 +633,8 @@ def plot_raytree(
                 ls="",
                 marker="o",
                 color=POINT_COLOR,
-                label=f"dipole samples ({len(tree.points)}, size ~ weight)",
+                label=f"dipole samples ({len(tree.points)}; {len(pts)} drawn: weight >= 1% "
+                "of the heaviest, area ~ weight)",
             )
         )
     fig.legend(
@@ -624,10 +652,10 @@ def plot_raytree(
         color="#eeeeee",
         fontsize=11,
     )
-    fig.tight_layout(rect=(0, 0.09, 1, 0.95))
+    fig.tight_layout(rect=(0, 0.11, 1, 0.95))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, facecolor=fig.get_facecolor())
+    fig.savefig(path, dpi=dpi, facecolor=fig.get_facecolor())
     plt.close(fig)
     return path
 
@@ -689,8 +717,10 @@ def raytree_files(
         w, h = max(1, round(cam.width * f)), max(1, round(cam.height * f))
         spp = min(scene.render.spp, 4)
         log(f"rendering a {w}x{h} backdrop at {spp} spp (pass --image to use your own render)")
-        image = render(scene.with_settings(width=w, height=h, spp=spp), seed)
-        note = f"backdrop: quick render {w}x{h}, {spp} spp"
+        same = (w, h, spp) == (cam.width, cam.height, scene.render.spp)
+        # the scene itself when nothing changes: its renderer is compiled already
+        image = render(scene if same else scene.with_settings(width=w, height=h, spp=spp), seed)
+        note = "backdrop: the render" if same else f"backdrop: quick render {w}x{h}, {spp} spp"
     tree.to_json(json_path)
     plot_raytree(tree, scene, png_path, image=image, note=note)
     return tree, json_path, png_path

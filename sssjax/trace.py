@@ -548,6 +548,8 @@ class SceneTracer:
         Ft_o = dipole.fresnel_transmittance(cos_o, eta)
         w_o = jnp.where(have, 1.0, 0.0)[:, None] * T_slot * (Ft_o / jnp.pi)[:, None]
         w = w_o[:, None, :] * Phi  # (M, n_sub, 3): x S for the subset, / S for the mean
+        if self._rec is not None:
+            self._rec.points(p, w, have)
         return self._bin(r, w, tobj, P, S)
 
     def _bin(self, r, w, tobj, P, S):
