@@ -4,7 +4,9 @@ Jensen et al. (2001) lit a flat sample with a focused beam and fitted the dipole
 the photographed radial profile. `radial_profile` extracts the profile (mean exitant
 radiance in annuli, with counts and standard errors) from an image; `fit_profile` fits
 `sigma_a` and `sigmap_s` (mm^-1, per channel) with optimistix, optionally with a free
-intensity scale, ignoring the (saturated) centre out to `r_min`.
+intensity scale, ignoring the (saturated) centre out to `r_min`; `model=` chooses the
+diffusion profile fitted (`sssjax.profiles.PROFILES`: the classic dipole by default, the
+better dipole, photon beam diffusion).
 
 Residuals are relative (differences of logarithms, weighted by the relative standard
 error): a profile spans decades, and absolute residuals would let the centre dominate.
@@ -15,13 +17,15 @@ error): a profile spans decades, and absolute residuals would let the centre dom
 from __future__ import annotations
 
 import dataclasses
+import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .dipole import Rd
+from .profiles import Rd, check_profile
 
 __all__ = ["Profile", "ProfileFit", "radial_profile", "fit_profile"]
 
@@ -38,7 +42,8 @@ class Profile:
 
 @dataclasses.dataclass
 class ProfileFit:
-    """Per-channel fitted coefficients (mm^-1) with standard errors, and the scale."""
+    """Per-channel fitted coefficients (mm^-1) with standard errors, and the scale; `model`
+    is the diffusion profile fitted (`sssjax.profiles.PROFILES`)."""
 
     sigma_a: np.ndarray
     sigmap_s: np.ndarray
@@ -48,6 +53,7 @@ class ProfileFit:
     scale_stderr: np.ndarray
     steps: list[int]
     converged: list[bool]
+    model: str = "dipole"
 
 
 def radial_profile(
@@ -103,6 +109,7 @@ def fit_profile(
     init: tuple[float, float] | None = None,
     rel_floor: float = 1e-3,
     max_steps: int = 200,
+    model: str = "dipole",
 ) -> ProfileFit:
     """Fit `sigma_a`, `sigmap_s` (mm^-1) per channel so that `scale R_d(r)` matches the profile.
 
@@ -110,26 +117,25 @@ def fit_profile(
     power, unless `free_scale`); `eta`; `r_min` (mm) excludes the centre; `free_scale` fits an
     overall intensity per channel too; `init` the starting `(sigma_a, sigmap_s)` (default: the best point of a log grid
     over 1e-4..10 and 1e-2..30 mm^-1);
-    `rel_floor` a floor on the relative error of each annulus (model error, quantisation).
+    `rel_floor` a floor on the relative error of each annulus (model error, quantisation);
+    `model` the diffusion profile fitted, one of `sssjax.profiles.PROFILES` (`"dipole"`,
+    `"better_dipole"`, `"pbd"`; named `model` because `profile` is the data).
 
     **Returns:** a `ProfileFit` with standard errors from the Gauss-Newton covariance.
     """
+    check_profile(model)
     sel = (profile.r >= r_min) & np.all(profile.mean > 0, axis=1)
     r = jnp.asarray(profile.r[sel])
     out = {k: [] for k in ("sa", "sp", "sc", "esa", "esp", "esc", "steps", "ok")}
     n_p = 3 if free_scale else 2
+    resid_args = _residual(free_scale, model)
     for c in range(3):
         data = profile.mean[sel, c]
         rel = np.sqrt((profile.stderr[sel, c] / data) ** 2 + rel_floor**2)
         logd, w = jnp.asarray(np.log(data)), jnp.asarray(1.0 / rel)
-
-        def resid(y, args, logd=logd, w=w):
-            sa, sp = jnp.exp(y[0]), jnp.exp(y[1])
-            logm = jnp.log(Rd(r, sa, sp, eta)) + (y[2] if free_scale else 0.0)
-            return (logm - logd) * w
-
+        args = (r, logd, w, jnp.asarray(eta, r.dtype))
         if init is None:
-            starts = _grid_starts(r, logd, w, eta, free_scale)
+            starts = _grid_starts(r, logd, w, eta, free_scale, model=model)
         else:
             starts = [jnp.asarray([np.log(init[0]), np.log(init[1])] + [0.0] * free_scale)]
         # several starts from the best grid points: the (sigma_a, sigmap_s) valley along
@@ -137,20 +143,20 @@ def fit_profile(
         best = None
         for y0 in starts:
             sol = optx.least_squares(
-                resid,
+                resid_args,
                 optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10),
                 y0,
+                args=args,
                 max_steps=max_steps,
                 throw=False,
                 options={"jac": "fwd"},
             )
-            loss = float(jnp.sum(resid(sol.value, None) ** 2))
+            loss = float(jnp.sum(_call(resid_args, sol.value, args) ** 2))
             if best is None or loss < best[0]:
                 best = (loss, sol)
         sol = best[1]
         y = sol.value
-        J = np.asarray(jax.jacfwd(resid)(y, None), dtype=np.float64)
-        rr = np.asarray(resid(y, None), dtype=np.float64)
+        J, rr = (np.asarray(x, dtype=np.float64) for x in _jac_and_resid(resid_args, y, args))
         s2 = float(rr @ rr) / max(rr.size - n_p, 1)
         # the weights are real standard errors: use chi^2/dof only when it exceeds 1
         cov = max(s2, 1.0) * np.linalg.pinv(J.T @ J)
@@ -166,17 +172,58 @@ def fit_profile(
         out["ok"].append(bool(sol.result == optx.RESULTS.successful))
     a = {k: np.asarray(v) for k, v in out.items()}
     return ProfileFit(
-        a["sa"], a["sp"], a["sc"], a["esa"], a["esp"], a["esc"], list(out["steps"]), list(out["ok"])
+        a["sa"],
+        a["sp"],
+        a["sc"],
+        a["esa"],
+        a["esp"],
+        a["esc"],
+        list(out["steps"]),
+        list(out["ok"]),
+        model,
     )
 
 
-def _grid_starts(r, logd, w, eta, free_scale, n_starts: int = 6):
+@functools.cache
+def _residual(free_scale: bool, model: str):
+    """The weighted log residual `(log(scale R_d(r)) - log data) w` of `y = log(sigma_a,
+    sigmap_s[, scale])`, `args = (r, log data, w, eta)`: one function object per layout, so
+    its compiled solver step is reused across channels and calls."""
+
+    def resid(y, args):
+        r, logd, w, eta = args
+        sa, sp = jnp.exp(y[0]), jnp.exp(y[1])
+        logm = jnp.log(Rd(r, sa, sp, eta, model)) + (y[2] if free_scale else 0.0)
+        return (logm - logd) * w
+
+    return resid
+
+
+@eqx.filter_jit
+def _call(fn, y, args):
+    return fn(y, args)
+
+
+@eqx.filter_jit
+def _jac_and_resid(resid, y, args):
+    return jax.jacfwd(resid)(y, args), resid(y, args)
+
+
+@functools.partial(jax.jit, static_argnames="model")
+def _grid_log_model(r, sa, sp, eta, model):
+    """`log R_d` on the `(sa, sp)` grid at `r`, `(len(sa), len(sp), len(r))`, one row of
+    `sa` at a time (PBD's 100 depths would not fit in memory at once)."""
+    return jax.lax.map(lambda a: jnp.log(Rd(r[None, :], a, sp[:, None], eta, model)), sa)
+
+
+def _grid_starts(r, logd, w, eta, free_scale, n_starts: int = 6, model: str = "dipole"):
     """The best `n_starts` local minima of the loss on a log grid of `(sigma_a, sigmap_s)`
-    (with the best log-scale offset in closed form when the scale is free)."""
+    (with the best log-scale offset in closed form when the scale is free), for the
+    diffusion profile `model`."""
     sa = jnp.exp(jnp.linspace(np.log(1e-4), np.log(10.0), 48))
     sp = jnp.exp(jnp.linspace(np.log(1e-2), np.log(30.0), 48))
     A, P = jnp.meshgrid(sa, sp, indexing="ij")
-    logm = jnp.log(Rd(r[None, None, :], A[..., None], P[..., None], eta))  # (48, 48, n)
+    logm = _grid_log_model(r, sa, sp, eta, model)  # (48, 48, n)
     d = (logm - logd) * w
     off = jnp.zeros(A.shape + (1,))
     if free_scale:

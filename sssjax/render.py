@@ -86,7 +86,7 @@ class Renderer:
         def sss_shaded(slots, keys, cloud, media):
             blocks = sss(slots, keys, cloud)
             r = jnp.asarray(tr.r_nodes, dtype=float)
-            return jax.vmap(lambda b: shade_sss(b, media, r))(blocks)
+            return jax.vmap(lambda b: shade_sss(b, media, r, profile=scene.sss.profile))(blocks)
 
         self._sss = jax.jit(sss)
         self._sss_shaded = jax.jit(sss_shaded)
@@ -210,6 +210,7 @@ class Renderer:
             width=self.scene.camera.width,
             height=self.scene.camera.height,
             materials=tr.tmat_names,
+            profile=self.scene.sss.profile,
             **{f: jnp.asarray(v) for f, v in cat.items()},
         )
 

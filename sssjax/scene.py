@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from .media import Medium, preset, preset_names
+from .profiles import PROFILES, check_profile
 
 __all__ = [
     "SceneError",
@@ -180,6 +181,7 @@ class SSSSettings:
     tries: int = 8
     bins: int = 256
     beam_points: int = 2048
+    profile: str = "dipole"
 
 
 @dataclass(frozen=True)
@@ -218,6 +220,8 @@ class Scene:
         unknown = set(kw) - set(r) - {f"sss_{k}" for k in s} - set(c)
         if unknown:
             raise TypeError(f"unknown settings: {sorted(unknown)}")
+        if "profile" in s:
+            check_profile(s["profile"])
         return dataclasses.replace(
             self,
             render=dataclasses.replace(self.render, **r),
@@ -385,6 +389,7 @@ _SSS = {
     "tries": (_pos_int, 8),
     "bins": (_pos_int, 256),
     "beam_points": (_pos_int, 2048),
+    "profile": (_str, "dipole"),
 }
 _LIGHTS = {
     "area": {
@@ -571,6 +576,11 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
     render = RenderSettings(**_fields(_Ctx(file, "render"), data.get("render", {}), _RENDER))
     sctx = _Ctx(file, "sss")
     sss = SSSSettings(**_fields(sctx, data.get("sss", {}), _SSS))
+    if sss.profile not in PROFILES:
+        hint = did_you_mean(sss.profile, PROFILES)
+        raise sctx.err(
+            "profile", f"unknown profile {sss.profile!r}{hint} (known: {', '.join(PROFILES)})"
+        )
     if sss.strategy not in _STRATEGIES:
         hint = did_you_mean(sss.strategy, _STRATEGIES)
         raise sctx.err(

@@ -1,7 +1,8 @@
 """The differentiable pass: radiance from a `Transport` and the media.
 
-`shade` is smooth in every medium's `sigma_a`, `sigma_s` and `g`: it evaluates the dipole
-`R_d` on the transport's distance nodes (a `(B, 3)` table per medium) and contracts it with
+`shade` is smooth in every medium's `sigma_a`, `sigma_s` and `g`: it evaluates the diffusion
+profile `R_d` (the scene's `[sss] profile`, carried by the transport; `sssjax.profiles`) on the
+transport's distance nodes (a `(B, 3)` table per medium) and contracts it with
 the per-pixel gather weights, and it re-weights the stored single-scattering samples by
 `integrand / proposal pdf`. No ray is cast here, so a fit can call it every iteration.
 """
@@ -13,7 +14,7 @@ from collections.abc import Mapping, Sequence
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from . import dipole
+from . import dipole, profiles
 from .media import Medium
 from .trace import SSSBlock, Transport
 
@@ -43,13 +44,20 @@ def shade_sss(
     *,
     multiple: bool = True,
     single: bool = True,
+    profile: str | None = None,
 ) -> Float[Array, "Pt 3"]:
-    """Subsurface radiance of the translucent rows: dipole gather plus single scattering."""
+    """Subsurface radiance of the translucent rows: profile gather plus single scattering.
+
+    `profile` (one of `sssjax.profiles.PROFILES`) defaults to `terms.profile`, the scene's
+    `[sss] profile` that `trace` recorded (an `SSSBlock` from `Transport.sss_terms` keeps it)."""
+    if profile is None:
+        profile = terms.profile
+    profiles.check_profile(profile)
     L = jnp.zeros(terms.ss_weight.shape[:1] + (3,), terms.ss_weight.dtype)
     r = r_nodes[:, None]
     for m, med in enumerate(media):
         if multiple:
-            rd = dipole.Rd(r, med.sigma_a, med.sigmap_s, med.eta)  # (B, 3)
+            rd = profiles.Rd(r, med.sigma_a, med.sigmap_s, med.eta, profile)  # (B, 3)
             L = L + jnp.einsum("pbc,bc->pc", terms.ms_hist[m], rd)
         if single and terms.ss_sp_o.shape[1] > 0:
             f = dipole.single_scatter_integrand(
@@ -84,7 +92,8 @@ def shade(
     - `media`: one `Medium` per translucent material: a dict by material name (as
       `scene.media()` returns) or a sequence in `transport.materials` order. Coefficients
       in mm^-1.
-    - `multiple`, `single`: include the dipole and single-scattering terms.
+    - `multiple`, `single`: include the multiple-scattering (diffusion profile) and
+      single-scattering terms. The profile is `transport.profile` (the scene's).
 
     **Returns:** `(P, 3)` linear RGB radiance, one row per `transport.pixels` entry.
     """

@@ -71,6 +71,7 @@ class Transport(eqx.Module):
     width: int = eqx.field(static=True)
     height: int = eqx.field(static=True)
     materials: tuple = eqx.field(static=True)
+    profile: str = eqx.field(static=True, default="dipole")  # `[sss] profile` of the scene
 
     @property
     def num_pixels(self) -> int:
@@ -78,7 +79,7 @@ class Transport(eqx.Module):
 
     def sss_terms(self) -> SSSBlock:
         """The subsurface fields (rows `t_rows`) as an `SSSBlock`."""
-        return SSSBlock(**{f: getattr(self, f) for f in SSS_FIELDS})
+        return SSSBlock(**{f: getattr(self, f) for f in SSS_FIELDS}, profile=self.profile)
 
     def translucent_pixels(self) -> Array:
         """Flat pixel indices of the rows with subsurface terms."""
@@ -97,6 +98,7 @@ class SSSBlock(eqx.Module):
     ss_cos_phase: Float[Array, "P K"]
     ss_pdf: Float[Array, "P K"]
     ss_weight: Float[Array, "P K 3"]
+    profile: str = eqx.field(static=True, default="dipole")  # as `Transport.profile`
 
 
 SSS_FIELDS = (

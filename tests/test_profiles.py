@@ -230,7 +230,7 @@ def test_pbd_is_pbrts_beam_diffusion(x64, name):
 
 def test_pbd_with_pbrts_fresnel_fits_is_close(x64):
     # pbrt's polynomial FresnelMoment1/2 (C_2 off by 0.9% at eta = 1.3) change the profile by
-    # a measured <= 0.6% over r in [0, 10] mm for marble
+    # a measured <= 0.35% over r in [0, 10] mm for marble (largest at r = 0)
     eta = 1.3
     fm1 = -4.61686 + 11.1136 * eta - 10.4646 * eta**2 + 5.11455 * eta**3
     fm1 += -1.27198 * eta**4 + 0.12746 * eta**5
@@ -241,7 +241,7 @@ def test_pbd_with_pbrts_fresnel_fits_is_close(x64):
     r = np.array([0.0, 0.1, 1.0, 10.0])
     ref = [_pbrt_beam_diffusion_ms(sp, sa, 0.0, eta, x, fm1, fm2) for x in r]
     got = np.asarray(profiles.Rd(r, sa, sp, eta, "pbd"))
-    np.testing.assert_allclose(got, ref, rtol=1e-2)
+    np.testing.assert_allclose(got, ref, rtol=5e-3)
 
 
 # --- gradients ---------------------------------------------------------------------------------

@@ -82,3 +82,20 @@ def test_sigmap_s_and_g_in_scene():
     med = scene.media()["m"]
     np.testing.assert_allclose(med.sigma_s, 2.0, rtol=1e-6)
     np.testing.assert_allclose(med.sigmap_s, 1.0, rtol=1e-6)
+
+
+def test_sss_profile_setting():
+    base = {
+        "camera": {"origin": [0, 0, 10], "target": [0, 0, 0]},
+        "materials": {"m": {"type": "translucent", "preset": "marble"}},
+        "shapes": [{"type": "sphere", "material": "m", "radius": 1.0}],
+    }
+    assert load_scene(base).sss.profile == "dipole"  # the default
+    for name in ("dipole", "better_dipole", "pbd"):
+        assert load_scene({**base, "sss": {"profile": name}}).sss.profile == name
+    scene = load_scene(base).with_settings(sss_profile="pbd")
+    assert scene.sss.profile == "pbd"
+    with pytest.raises(ValueError, match="did you mean 'pbd'"):
+        load_scene(base).with_settings(sss_profile="pdb")
+    with pytest.raises(SceneError, match=r"\[sss\] profile: expected a string, got 3"):
+        load_scene({**base, "sss": {"profile": 3}})

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 import sssjax
-from sssjax import Medium, dipole, preset
+from sssjax import Medium, dipole, preset, profiles
 from sssjax.camera import project
 from sssjax.render import Renderer, as_key
+from sssjax.shade import shade_sss
 from sssjax.trace import R0_MM, disc_node_weights
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -137,12 +138,16 @@ def test_gather_histogram_matches_dense_sum(x64):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["skin1", "ketchup"])
-def test_flat_slab_multiple_scattering_approaches_closed_form(name):
+@pytest.mark.parametrize(
+    ("name", "profile"),
+    [("skin1", "dipole"), ("ketchup", "dipole"), ("skin1", "better_dipole"), ("skin1", "pbd")],
+)
+def test_flat_slab_multiple_scattering_approaches_closed_form(name, profile):
     """Far from the slab's edges, under (nearly) uniform light from straight above, the
     multiple-scattering radiance is F_t(cos_o)/pi * E_t * R_d,total (Jensen 2001 eq. 4-5),
-    with E_t the Fresnel-transmitted irradiance. Single scattering is off here."""
-    scene = slab_scene({"type": "translucent", "preset": name})
+    with E_t the Fresnel-transmitted irradiance and R_d,total that of the scene's profile.
+    Single scattering is off here."""
+    scene = slab_scene({"type": "translucent", "preset": name}).with_settings(sss_profile=profile)
     img = sssjax.render(scene, 0)
     m = preset(name)
     d = 1000.0
@@ -154,8 +159,12 @@ def test_flat_slab_multiple_scattering_approaches_closed_form(name):
         float(dipole.fresnel_transmittance(cos_o, 1.3))
         / np.pi
         * E_t
-        * np.asarray(dipole.Rd_total(m.sigma_a, m.sigmap_s, m.eta))
+        * np.asarray(profiles.Rd_total(m.sigma_a, m.sigmap_s, m.eta, profile))
     )
+    if profile != "dipole":  # the test tells the profiles apart: skin1's blue differs by > 20%
+        classic = np.asarray(dipole.Rd_total(m.sigma_a, m.sigmap_s, m.eta))
+        own = np.asarray(profiles.Rd_total(m.sigma_a, m.sigmap_s, m.eta, profile))
+        assert np.max(np.abs(own / classic - 1)) > 0.2
     got = img.reshape(-1, 3).mean(axis=0)
     # the light is 1 m away: irradiance falls by < 0.1% over the diffusion lengths involved
     np.testing.assert_allclose(got, expected, rtol=0.03)
@@ -215,6 +224,27 @@ def test_shade_of_trace_equals_render():
     img = sssjax.render(scene, 5)
     tr = sssjax.trace(scene, 5)
     np.testing.assert_allclose(sssjax.shade_image(tr, scene.media()), img, rtol=1e-5, atol=1e-7)
+
+
+def test_profile_reaches_render_trace_shade_and_fit_blocks():
+    # the scene's [sss] profile is used by render's fused trace+shade, recorded in the
+    # transport (and its SSSBlock, which the fit shades), and it changes the image
+    base = slab_scene({"type": "translucent", "preset": "skin1"}, cloud=2048)
+    scene = base.with_settings(sss_profile="better_dipole")
+    img = sssjax.render(scene, 5)
+    tr = sssjax.trace(scene, 5)
+    assert tr.profile == "better_dipole" and tr.sss_terms().profile == "better_dipole"
+    np.testing.assert_allclose(sssjax.shade_image(tr, scene.media()), img, rtol=1e-5, atol=1e-7)
+    media = tuple(scene.media()[n] for n in tr.materials)
+    via_block = shade_sss(tr.sss_terms(), media, tr.r_nodes)
+    np.testing.assert_allclose(via_block, shade_sss(tr, media, tr.r_nodes), rtol=1e-6)
+    classic = sssjax.render(base, 5)
+    # skin1's green and blue totals differ by 15% and 21% between the two profiles
+    ratio = img.reshape(-1, 3).mean(0) / classic.reshape(-1, 3).mean(0)
+    expected = np.asarray(
+        profiles.Rd_total(media[0].sigma_a, media[0].sigmap_s, 1.3, "better_dipole")
+    ) / np.asarray(dipole.Rd_total(media[0].sigma_a, media[0].sigmap_s, 1.3))
+    np.testing.assert_allclose(ratio, expected, rtol=0.03)
 
 
 def test_determinism_by_seed():
