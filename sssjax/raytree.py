@@ -284,16 +284,18 @@ class _Recorder:
                 self._add(kind, o[s], end[s], parent[s])
 
     def points(self, p, w, have) -> None:
-        """Dipole sample points and their gather weights `w (M, n, 3)`."""
+        """Dipole sample points and their gather weights `w (M, n, 3)`; `p` is `(M, n, 3)` or
+        `(P or 1, spp, n, 3)` (the cloud subset of each sample)."""
         have = np.asarray(have, bool)
-        M = have.shape[0]
-        p = np.asarray(p, float)
-        if p.ndim == 4:  # (P or 1, spp, n, 3) per sample subset of the cloud
-            p = np.broadcast_to(p, (M // self.spp,) + p.shape[1:]).reshape(M, -1, 3)
-        w = np.asarray(w, float).mean(axis=-1)
         m = np.flatnonzero(self.rows & have)
+        p = np.asarray(p)
+        if p.ndim == 4:
+            p = p[(m // self.spp) if p.shape[0] > 1 else 0, m % self.spp]
+        else:
+            p = p[m]
+        w = np.asarray(w)[m].astype(float).mean(axis=-1)
         n = p.shape[1]
-        self.pts.append((p[m].reshape(-1, 3), w[m].reshape(-1), np.repeat(m % self.spp, n)))
+        self.pts.append((p.reshape(-1, 3).astype(float), w.reshape(-1), np.repeat(m % self.spp, n)))
 
     def dipole(self, xo, p, have) -> None:
         """Per-pixel Monte Carlo dipole samples: segments `x_o -> p` (`p (M, K, 3)`), which
