@@ -316,7 +316,6 @@ def fit(
         trace_sd = 0.5 * np.abs(np.asarray(run["y"] - other["y"], dtype=np.float64))
         joint["history"] = run["history"] + other["history"] + joint["history"]
         joint["steps"] = run["steps"] + other["steps"] + joint["steps"]
-        joint["loss0"] = run["loss0"]
         run = joint
 
     y = run["y"]
@@ -382,7 +381,7 @@ def fit(
         correlation=np.nan_to_num(corr).tolist(),
         media=fitted,
         steps=run["steps"],
-        loss_initial=run["loss0"],
+        loss_initial=float(_loss(run["residuals"], y0, run["args"])),
         loss_final=float(_loss(run["residuals"], y, run["args"])),
         status=status,
         message=message,
