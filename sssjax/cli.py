@@ -236,7 +236,7 @@ def _cmd_measure(args: argparse.Namespace) -> int:
             f"only {n_used} annuli beyond --r-min {args.r_min:g} mm (profile reaches "
             f"{prof.r.max():.3g} mm): lower --r-min or give a larger image"
         )
-    res = fit_profile(prof, eta, r_min=args.r_min, free_scale=free)
+    res = fit_profile(prof, eta, r_min=args.r_min, free_scale=free, model=args.model)
     out = Path(args.output) if args.output else Path("out") / f"measure-{path.stem}"
     if out.resolve() == path.resolve().parent:
         raise UserError(f"refusing to write results into the image's folder {out}")
@@ -244,7 +244,7 @@ def _cmd_measure(args: argparse.Namespace) -> int:
         raise UserError(f"{out / 'measure.json'} exists; use --force to overwrite or -o DIR")
     print(
         f"{path}: {w}x{h} px, {pixel:.4g} mm/px, centre ({center[0]:.1f}, {center[1]:.1f}) px, "
-        f"eta {eta:g}, r {args.r_min:g}..{prof.r.max():.1f} mm, "
+        f"eta {eta:g}, r {args.r_min:g}..{prof.r.max():.1f} mm, model {args.model}, "
         + ("free intensity scale" if free else f"beam power {np.ravel(power).tolist()} W")
     )
     print(f"{'ch':<3} {'sigma_a [1/mm]':>22} {'sigmap_s [1/mm]':>22} {'scale':>16}  steps")
@@ -269,6 +269,7 @@ def _cmd_measure(args: argparse.Namespace) -> int:
         "eta": eta,
         "r_min_mm": args.r_min,
         "free_scale": free,
+        "model": args.model,
         "units": "coefficients 1/mm",
         **{
             k: np.asarray(getattr(res, k)).tolist()
@@ -418,6 +419,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--free-scale", action="store_true", help="fit an intensity scale too")
     s.add_argument("--r-min", type=float, default=1.0, help="exclude r < R_MIN mm (1.0)")
     s.add_argument("--r-max", type=float, help="largest radius, mm (default: image edge)")
+    s.add_argument(
+        "--model",
+        default="dipole",
+        choices=["dipole", "better_dipole", "pbd"],
+        help="diffusion profile to fit (default: the classic dipole; see docs/accuracy.md)",
+    )
     s.add_argument("--incidence", type=float, default=0.0, help="beam angle from normal, deg")
     s.add_argument("--view-angle", type=float, default=0.0, help="camera angle from normal")
     s.add_argument("-o", "--output", help="output folder (default: out/measure-IMAGE)")

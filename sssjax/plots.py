@@ -121,16 +121,18 @@ def convergence_plot(history: list[dict], names: list[str], path: str | Path) ->
 
 
 def measurement_plot(profile, fit, eta: float, path: str | Path, *, r_min: float = 0.0) -> Path:
-    """The measured radial profile (points with error bars) against the fitted dipole
-    `scale R_d(r)` (lines), log scale per RGB channel, and the relative residual below.
+    """The measured radial profile (points with error bars) against the fitted profile
+    `scale R_d(r)` (lines; `fit.model`), log scale per RGB channel, and the relative residual
+    below.
 
     **Arguments:** `profile` (`sssjax.measure.Profile` in `R_d` units), `fit`
     (`ProfileFit`), `eta`, `path` of the PNG, `r_min` the excluded centre (mm, shaded).
 
     **Returns:** the path written.
     """
-    from .dipole import Rd
+    from .profiles import Rd
 
+    model_name = getattr(fit, "model", "dipole")
     plt = _pyplot()
     fig, (ax, axr) = plt.subplots(
         2, 1, figsize=(7.0, 6.4), sharex=True, gridspec_kw={"height_ratios": [3, 1]}
@@ -138,8 +140,8 @@ def measurement_plot(profile, fit, eta: float, path: str | Path, *, r_min: float
     r = np.asarray(profile.r)
     rr = np.linspace(max(r.min(), 1e-3), r.max(), 400)
     for c in range(3):
-        model = fit.scale[c] * np.asarray(Rd(rr, fit.sigma_a[c], fit.sigmap_s[c], eta))
-        at = fit.scale[c] * np.asarray(Rd(r, fit.sigma_a[c], fit.sigmap_s[c], eta))
+        model = fit.scale[c] * np.asarray(Rd(rr, fit.sigma_a[c], fit.sigmap_s[c], eta, model_name))
+        at = fit.scale[c] * np.asarray(Rd(r, fit.sigma_a[c], fit.sigmap_s[c], eta, model_name))
         ok = profile.mean[:, c] > 0
         ax.errorbar(
             r[ok], profile.mean[ok, c], yerr=profile.stderr[ok, c], fmt=".", ms=3,
@@ -156,7 +158,7 @@ def measurement_plot(profile, fit, eta: float, path: str | Path, *, r_min: float
             a.axvspan(0, r_min, color="0.85", zorder=0)
         a.grid(True, which="both", alpha=0.3)
     ax.set_ylabel("R_d(r) [mm$^{-2}$]")
-    ax.set_title("Radial profile vs fitted dipole (grey: excluded centre)")
+    ax.set_title(f"Radial profile vs fitted {model_name} (grey: excluded centre)")
     ax.legend(fontsize=7, loc="upper right")
     axr.axhline(0, color="k", lw=0.6)
     axr.set_ylim(-0.1, 0.1)

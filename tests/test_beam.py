@@ -185,7 +185,7 @@ def test_measure_cli(tmp_path, capsys):
     out = tmp_path / "res"
     assert main(["measure", str(exr), "-o", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "sigma_a" in text and "beam power [1.0, 1.0, 1.0] W" in text
+    assert "sigma_a" in text and "beam power [1.0, 1.0, 1.0] W" in text and "model dipole" in text
     res = json.loads((out / "measure.json").read_text())
     marble = sssjax.preset("marble")
     np.testing.assert_allclose(res["sigma_a"], np.asarray(marble.sigma_a), rtol=0.02)
