@@ -35,7 +35,7 @@ from .shade import shade_sss
 
 __all__ = ["fit", "FitResult", "FitError", "PARAM_FIELDS"]
 
-PARAM_FIELDS = ("sigma_a", "sigma_s", "sigmap_s")
+PARAM_FIELDS = ("sigma_a", "sigma_s", "sigmap_s", "g")
 _CH = "RGB"
 
 
@@ -200,11 +200,15 @@ def fit(
     - `scene`: the scene the target was taken in (camera, lights, geometry).
     - `target`: `(H, W, 3)` linear radiance, or an image path (EXR/PNG/TIFF).
     - `params`: free parameters, `"MATERIAL.FIELD"` with FIELD in `sigma_a`, `sigma_s`,
-      `sigmap_s` (each RGB; the material may be omitted when there is only one), and
+      `sigmap_s` (each RGB, mm^-1), `g` (the Henyey-Greenstein mean cosine, RGB; the
+      diffusion term sees only `sigmap_s = sigma_s (1 - g)`, so `g` is separated from
+      `sigma_s` by single scattering alone) (the material may be omitted when there is
+      only one), and
       `"exposure"`: one overall factor on the rendered image (a nuisance parameter for an
       uncalibrated camera or light). Default: `sigma_a` and `sigma_s` of every translucent
       material.
-    - `init`: initial values by `"MATERIAL.FIELD"` (RGB, mm^-1, > 0) or `"exposure"`;
+    - `init`: initial values by `"MATERIAL.FIELD"` (RGB, mm^-1, > 0; `g` in (-1, 1)) or
+      `"exposure"`;
       default: the scene's (exposure 1).
     - `mask`: `(H, W)` boolean pixels to fit; default: every pixel that sees a translucent
       object (the only pixels the coefficients affect).
@@ -243,7 +247,11 @@ def fit(
             if key in init:
                 v = np.broadcast_to(np.asarray(init.pop(key), dtype=np.float64), (3,))
                 break
-        if not np.all(np.isfinite(v)) or np.any(v <= 0):
+        v = np.broadcast_to(v, (3,))
+        if field == "g":
+            if not np.all(np.isfinite(v)) or np.any(np.abs(v) >= 1):
+                raise FitError(f"initial {mat}.g must satisfy |g| < 1, got {v.tolist()}")
+        elif not np.all(np.isfinite(v)) or np.any(v <= 0):
             raise FitError(f"initial {mat}.{field} must be finite and > 0, got {v.tolist()}")
         start[(mat, field)] = v
     e0 = float(np.asarray(init.pop("exposure", 1.0), dtype=np.float64)) if exposure else 1.0
@@ -277,7 +285,14 @@ def fit(
     data = [_trace_data(renderer, k, tgt, mask, progress) for k in keys]
     trace_time = time.perf_counter() - t0
     names = [f"{m}.{f}.{_CH[c]}" for m, f in free for c in range(3)] + ["exposure"] * exposure
-    y0 = jnp.asarray(np.concatenate([np.log(start[k]) for k in free] + [[np.log(e0)]] * exposure))
+    # unconstrained coordinates: log of the coefficients and the exposure, atanh of g
+    tanh_idx = np.array([f == "g" for _, f in free for _ in range(3)] + [False] * exposure)
+    y0 = jnp.asarray(
+        np.concatenate(
+            [np.arctanh(start[k]) if k[1] == "g" else np.log(start[k]) for k in free]
+            + [[np.log(e0)]] * exposure
+        )
+    )
     fn_kw = dict(
         free=tuple(free),
         exposure=exposure,
@@ -291,6 +306,7 @@ def fit(
         weighting=weighting,
         rel_floor=rel_floor,
         names=names,
+        tanh_idx=tanh_idx,
         progress=progress,
     )
     run = _solve(data, y0, **fn_kw)
@@ -345,13 +361,15 @@ def fit(
     except np.linalg.LinAlgError:
         cov_log = np.full((y.size, y.size), np.inf)
         warnings.append("J^T J is singular: the parameters are not identifiable from this target")
-    vals = np.exp(np.asarray(y, dtype=np.float64))
+    vals = _values(y, tanh_idx)
+    # d value / d y: value for log coordinates, 1 - g^2 for atanh
+    dval = np.where(tanh_idx, 1.0 - vals**2, vals)
     sd_log = np.sqrt(np.clip(np.diag(cov_log), 0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov_log / np.outer(sd_log, sd_log)
     trace_stderr = None
     if trace_sd is not None:
-        trace_stderr = dict(zip(names, (vals * trace_sd).tolist(), strict=True))
+        trace_stderr = dict(zip(names, (dval * trace_sd).tolist(), strict=True))
         sd_log = np.sqrt(sd_log**2 + trace_sd**2)
         ratio = np.max(trace_sd / np.maximum(np.sqrt(np.diag(cov_log)), 1e-300))
         if ratio > 2:
@@ -365,6 +383,18 @@ def fit(
             "sigma_s is free but single scattering is off: the dipole sees only "
             "sigmap_s = sigma_s (1 - g)"
         )
+    for mat in {m for m, _ in free}:
+        if (mat, "g") in free and ((mat, "sigma_s") in free or (mat, "sigmap_s") in free):
+            other = "sigma_s" if (mat, "sigma_s") in free else "sigmap_s"
+            idx = {n: i for i, n in enumerate(names)}
+            rho = max(abs(corr[idx[f"{mat}.g.{c}"], idx[f"{mat}.{other}.{c}"]]) for c in _CH)
+            if not scene.sss.single_scattering or not np.isfinite(rho) or rho > 0.95:
+                why = "is off" if not scene.sss.single_scattering else "is too weak"
+                warnings.append(
+                    f"{mat}: g and {other} are both free, but the diffusion term sees only "
+                    f"sigmap_s = sigma_s (1 - g) and single scattering {why} to separate "
+                    f"them (correlation up to {rho:.3f}): fix g, or fit sigmap_s alone"
+                )
     if exposure and "sigma_a" in fields:
         warnings.append(
             "exposure is free: the absolute level no longer pins the albedo, so sigma_a rests "
@@ -376,8 +406,8 @@ def fit(
     return FitResult(
         names=names,
         values=dict(zip(names, vals.tolist(), strict=True)),
-        stderr=dict(zip(names, (vals * sd_log).tolist(), strict=True)),
-        initial=dict(zip(names, np.exp(np.asarray(y0)).tolist(), strict=True)),
+        stderr=dict(zip(names, (dval * sd_log).tolist(), strict=True)),
+        initial=dict(zip(names, _values(y0, tanh_idx).tolist(), strict=True)),
         correlation=np.nan_to_num(corr).tolist(),
         media=fitted,
         steps=run["steps"],
@@ -436,6 +466,7 @@ def _solve(
     weighting,
     rel_floor,
     names,
+    tanh_idx,
     progress,
     weights_at=None,
 ):
@@ -479,18 +510,18 @@ def _solve(
     state = _init(slv, fn, y0, args, options)
     y = y0
     loss0 = float(_loss(residuals, y0, args))
-    history = [{"step": 0, "loss": loss0, "params": np.exp(np.asarray(y0)).tolist()}]
+    history = [{"step": 0, "loss": loss0, "params": _values(y0, tanh_idx).tolist()}]
     if progress:
-        _progress_line(0, loss0, names, np.exp(np.asarray(y0)))
+        _progress_line(0, loss0, names, _values(y0, tanh_idx))
     result = optx.RESULTS.max_steps_reached
     stalled = False
     n = 0
     for n in range(1, max_steps + 1):
         y, state, done, res, lval = _step(slv, fn, residuals, y, args, options, state)
         lval = float(lval)
-        history.append({"step": n, "loss": lval, "params": np.exp(np.asarray(y)).tolist()})
+        history.append({"step": n, "loss": lval, "params": _values(y, tanh_idx).tolist()})
         if progress:
-            _progress_line(n, lval, names, np.exp(np.asarray(y)))
+            _progress_line(n, lval, names, _values(y, tanh_idx))
         if bool(done):
             result = res
             break
@@ -529,19 +560,27 @@ def _solve(
     )
 
 
+def _values(y, tanh_idx) -> np.ndarray:
+    """Parameter values from the solver's unconstrained coordinates (float64 NumPy)."""
+    y = np.asarray(y, dtype=np.float64)
+    return np.where(tanh_idx, np.tanh(y), np.exp(np.where(tanh_idx, 0.0, y)))
+
+
 def _media_of(free, order, y, media0):
-    """Media with the free coefficients set from log-parameters `y` (3 per free field)."""
+    """Media with the free coefficients set from `y` (3 per free field: log of the
+    coefficients, atanh of `g`)."""
     logs = {k: y[3 * i : 3 * i + 3] for i, k in enumerate(free)}
     out = []
     for mat, m in zip(order, media0, strict=True):
+        g = jnp.tanh(logs[(mat, "g")]) if (mat, "g") in logs else m.g
         sa = jnp.exp(logs[(mat, "sigma_a")]) if (mat, "sigma_a") in logs else m.sigma_a
         if (mat, "sigmap_s") in logs:
-            ss = jnp.exp(logs[(mat, "sigmap_s")]) / (1.0 - m.g)
+            ss = jnp.exp(logs[(mat, "sigmap_s")]) / (1.0 - g)
         elif (mat, "sigma_s") in logs:
             ss = jnp.exp(logs[(mat, "sigma_s")])
         else:
             ss = m.sigma_s
-        out.append(Medium(sa, ss, m.g, m.eta))
+        out.append(Medium(sa, ss, g, m.eta))
     return tuple(out)
 
 

@@ -87,6 +87,11 @@ def scene_and_target():
         (dict(solver="adam"), "unknown solver"),
         (dict(traces=0), "traces must be"),
         (dict(loss="l1"), "unknown loss"),
+        (dict(weighting="log"), "unknown weighting"),
+        (dict(params=["g"], init={"g": 1.2}), r"\|g\| < 1"),
+        (dict(params=["sigma_a", "exposure"], init={"exposure": 0.0}), "exposure must be"),
+        (dict(params=["exposure"]), "at least one coefficient"),
+        (dict(params=["sigma_a"], init={"exposure": 2.0}), "not free"),
     ],
 )
 def test_bad_input(scene_and_target, kwargs, message):
@@ -174,3 +179,66 @@ def test_robust_loss_ignores_outlier_pixels():
     robust = fit(scene, target_bad, init=init, seed=0, loss="cauchy", loss_scale=0.05)
     assert err(robust) < 0.01
     assert err(plain) > 5 * err(robust)
+
+
+def test_free_exposure_is_recovered_with_the_coefficients():
+    """An uncalibrated target (the render x 1.7): the exposure comes out as 1.7 and the
+    coefficients as the truth (same seed, so the minimum is exact)."""
+    scene = small("marble")
+    target = np.asarray(sssjax.render(scene, 0)) * 1.7
+    true = scene.media()["marble"]
+    init = {"sigma_a": np.asarray(true.sigma_a) * 1.5, "exposure": 1.0}
+    res = fit(scene, target, params=["sigma_a", "sigma_s", "exposure"], init=init, seed=0)
+    assert res.converged, res.message
+    assert res.exposure == pytest.approx(1.7, rel=0.01)
+    got = [res.values[f"marble.sigma_a.{c}"] for c in "RGB"]
+    np.testing.assert_allclose(got, true.sigma_a, rtol=0.02)
+    assert any("exposure is free" in w for w in res.warnings)
+
+
+def test_g_jacobian_and_identifiability_warning(x64):
+    """`g` is fitted through atanh: the solver's Jacobian column for it matches central
+    differences of shade, and freeing g with sigma_s while single scattering is off is
+    reported as unidentifiable, in words."""
+    from sssjax.fit import _media_of
+    from sssjax.shade import shade
+
+    scene = small("skin1").with_settings(width=12, height=12, spp=1, sss_cloud_size=256)
+    tr = sssjax.trace(scene, 0)
+    m0 = scene.media()["marble"]
+    m0 = sssjax.Medium(m0.sigma_a, m0.sigma_s, 0.3, m0.eta)
+    free = (("marble", "sigma_s"), ("marble", "g"))
+
+    def img(y):
+        (med,) = _media_of(free, ("marble",), y, (m0,))
+        return shade(tr, {"marble": med}).reshape(-1)
+
+    y0 = jax.numpy.concatenate(
+        [jax.numpy.log(m0.sigma_s), jax.numpy.arctanh(jax.numpy.full(3, 0.3))]
+    )
+    J = np.asarray(jax.jacfwd(img)(y0))
+    assert np.abs(J[:, 3:]).max() > 0  # g matters (single scattering is on here)
+    for i in range(6):
+        e = np.zeros(6)
+        e[i] = 1e-6
+        fd = (np.asarray(img(y0 + e)) - np.asarray(img(y0 - e))) / 2e-6
+        np.testing.assert_allclose(J[:, i], fd, rtol=1e-5, atol=1e-9 * np.abs(fd).max())
+
+    off = small("marble").with_settings(
+        width=16, height=16, spp=1, sss_cloud_size=256, sss_single_scattering=False
+    )
+    target = sssjax.render(off, 0)
+    res = fit(off, target, params=["sigma_s", "g"], init={"g": 0.2}, seed=0, max_steps=5)
+    assert any("g and sigma_s are both free" in w for w in res.warnings), res.warnings
+
+
+def test_refine_adds_the_trace_noise_to_the_error_bars(scene_and_target):
+    scene, target = scene_and_target
+    plain = fit(scene, target, seed=3)
+    ref = fit(scene, target, seed=3, refine=True)
+    assert plain.trace_stderr is None and ref.trace_stderr is not None
+    for n in ref.names:
+        # total^2 = statistical^2 + trace^2, so the total is at least the trace part
+        assert ref.stderr[n] >= ref.trace_stderr[n] * (1 - 1e-9)
+        assert ref.trace_stderr[n] > 0
+    assert ref.steps > plain.steps  # three phases
