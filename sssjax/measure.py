@@ -113,8 +113,9 @@ def fit_profile(
 ) -> ProfileFit:
     """Fit `sigma_a`, `sigmap_s` (mm^-1) per channel so that `scale R_d(r)` matches the profile.
 
-    **Arguments:** `profile` (its `mean` in units of `R_d`, i.e. exitance per unit incident
-    power, unless `free_scale`); `eta`; `r_min` (mm) excludes the centre; `free_scale` fits an
+    **Arguments:** `profile` (its `mean` in units of `R_d`, i.e. exitance in mm^-2 per unit
+    power *entering* the medium, after the entry Fresnel loss: `image_to_reflectance`
+    converts an image to it; any units with `free_scale`); `eta`; `r_min` (mm) excludes the centre; `free_scale` fits an
     overall intensity per channel too; `init` the starting `(sigma_a, sigmap_s)` (default: the best point of a log grid
     over 1e-4..10 and 1e-2..30 mm^-1);
     `rel_floor` a floor on the relative error of each annulus (model error, quantisation);
