@@ -17,10 +17,11 @@ class UserError(Exception):
     """An error caused by the user's input: reported in one line, without a traceback."""
 
 
-def materials_table() -> str:
-    """The measured presets with their derived quantities, as a fixed-width text table."""
-    from .dipole import Rd_total
+def materials_table(profile: str = "dipole") -> str:
+    """The measured presets with their derived quantities, as a fixed-width text table
+    (total diffuse reflectance of the named `profile`)."""
     from .media import preset, preset_names
+    from .profiles import Rd_total
 
     def trip(v, fmt):
         return " ".join(fmt.format(x) for x in np.asarray(v))
@@ -34,15 +35,16 @@ def materials_table() -> str:
         m = preset(name)
         lines.append(
             f"{name:<10} {trip(m.sigmap_s, '{:5.2f}'):<20} {trip(m.sigma_a, '{:7.4f}'):<23} "
-            f"{trip(Rd_total(m.sigma_a, m.sigmap_s, m.eta), '{:5.3f}'):<19} "
+            f"{trip(Rd_total(m.sigma_a, m.sigmap_s, m.eta, profile), '{:5.3f}'):<19} "
             f"{trip(m.diffuse_mean_free_path, '{:6.2f}'):<22}"
         )
-    lines.append("(Jensen et al. 2001; g = 0, eta = 1.3; total R_d of the classic dipole)")
+    names = {"dipole": "the classic dipole", "better_dipole": "the better dipole", "pbd": "PBD"}
+    lines.append(f"(Jensen et al. 2001; g = 0, eta = 1.3; total R_d of {names[profile]})")
     return "\n".join(lines)
 
 
 def _cmd_materials(args: argparse.Namespace) -> int:
-    print(materials_table())
+    print(materials_table(args.profile))
     return 0
 
 
@@ -356,6 +358,12 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("materials", help="print the measured media with derived quantities")
+    s.add_argument(
+        "--profile",
+        default="dipole",
+        choices=["dipole", "better_dipole", "pbd"],
+        help="diffusion profile for the total reflectance column",
+    )
     s.set_defaults(func=_cmd_materials)
 
     s = sub.add_parser("demo", help="the `make demo` job")

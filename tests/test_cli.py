@@ -18,6 +18,19 @@ def test_materials_prints_every_preset_with_derived_values(capsys):
         assert any(row.startswith(name) for row in out.splitlines())
 
 
+def test_materials_total_of_another_profile(capsys):
+    from sssjax import profiles
+
+    assert main(["materials", "--profile", "pbd"]) == 0
+    out = capsys.readouterr().out
+    m = preset("skin1")
+    total = np.asarray(profiles.Rd_total(m.sigma_a, m.sigmap_s, m.eta, "pbd"))
+    classic = np.asarray(dipole.Rd_total(m.sigma_a, m.sigmap_s, m.eta))
+    assert abs(total[1] - classic[1]) > 0.005  # the column really changes
+    line = next(line for line in out.splitlines() if line.startswith("skin1"))
+    assert f"{total[1]:5.3f}" in line and "total R_d of PBD" in out
+
+
 def test_demo_writes_profile_plot_and_render(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path), "--size", "24", "--spp", "1"]) == 0
     out = capsys.readouterr().out
