@@ -19,6 +19,17 @@ def _pyplot():
     return plt
 
 
+def _save(fig, path, dpi: int = 110) -> Path:
+    """Write `fig` to `path` (creating its folder) and close it."""
+    plt = _pyplot()
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def plot_profiles(names: Sequence[str], path: str | Path, r_max_mm: float = 20.0) -> Path:
     """Plot `R_d(r)` (log scale, mm^-2) against r (mm) per RGB channel for named presets.
 
@@ -48,12 +59,7 @@ def plot_profiles(names: Sequence[str], path: str | Path, r_max_mm: float = 20.0
     for ax in axes.ravel()[n:]:
         ax.axis("off")
     fig.suptitle("Classic dipole diffuse reflectance profiles (Jensen et al. 2001 media)")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def fit_triptych(
@@ -87,11 +93,7 @@ def fit_triptych(
     fig.colorbar(im, ax=ax[2], fraction=0.046)
     for a in ax:
         a.axis("off")
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path, psnr, ssim
+    return _save(fig, path, 100), psnr, ssim
 
 
 def convergence_plot(history: list[dict], names: list[str], path: str | Path) -> Path:
@@ -113,11 +115,7 @@ def convergence_plot(history: list[dict], names: list[str], path: str | Path) ->
     ax[1].set_ylabel("parameter / final value")
     ax[1].grid(True, alpha=0.3)
     ax[1].legend(fontsize=7)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(fig, path, 100)
 
 
 def measurement_plot(profile, fit, eta: float, path: str | Path, *, r_min: float = 0.0) -> Path:
@@ -164,9 +162,4 @@ def measurement_plot(profile, fit, eta: float, path: str | Path, *, r_min: float
     axr.set_ylim(-0.1, 0.1)
     axr.set_ylabel("measured / fit - 1")
     axr.set_xlabel("r [mm]")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)

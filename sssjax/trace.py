@@ -493,25 +493,11 @@ class SceneTracer:
         `R_d` is steepest, at the cost of assuming flatness within `R_near` (about two cloud
         spacings).
         """
-        M = P * S
         Mt, B = len(self.tmat_names), self.bins
-        n_sub = self.cloud_n // S
-        # sample s of a pixel gathers cloud points s, s + S, s + 2S, ...: (No, S, n_sub, 3).
-        # Broadcasting over pixels and selecting the object with `where` avoids a gather
-        # indexed by data (which XLA on CPU does slowly).
-        pts = cloud.points.reshape(-1, n_sub, S, 3).transpose(0, 2, 1, 3)
-        irr = cloud.irradiance.reshape(-1, n_sub, S, 3).transpose(0, 2, 1, 3)
-        tob = tobj.reshape(P, S, 1, 1)
-        p, E = pts[0][None], irr[0][None]
-        for jo in range(1, pts.shape[0]):
-            p = jnp.where(tob == jo, pts[jo][None], p)
-            E = jnp.where(tob == jo, irr[jo][None], E)
-        r = jnp.linalg.norm(p - xo.reshape(P, S, 1, 3), axis=-1).reshape(M, n_sub)
-        E = jnp.broadcast_to(E, (P, S, n_sub, 3)).reshape(M, n_sub, 3)
-        eta = jnp.asarray(self.shape_eta, dtype=float)[jnp.asarray(self.tobj_shape)][tobj]
-        Ft_o = dipole.fresnel_transmittance(cos_o, eta)
+        p, r, E, w_o, Ft_o = self._subsets(
+            cloud.points, cloud.irradiance, have, xo, cos_o, tobj, T_slot, P, S
+        )
         # spp subsets of 1/spp of the cloud each: scale by spp, then average over spp -> 1
-        w_o = jnp.where(have, 1.0, 0.0)[:, None] * T_slot * (Ft_o / jnp.pi)[:, None]
         w_o = w_o * cloud.area[tobj][:, None] / S  # area per point; / S for the pixel mean
         far = (r >= jnp.asarray(self.tobj_rnear, dtype=float)[tobj][:, None])[..., None]
         w = jnp.where(far, w_o[:, None, :] * E * S, 0.0)  # (M, n_sub, 3)
@@ -531,24 +517,36 @@ class SceneTracer:
         )
         return hist + near
 
+    def _subsets(self, points, values, have, xo, cos_o, tobj, T_slot, P, S):
+        """Each sample's `1/spp` subset of per-object source points (`points`, `values`:
+        `(No, N, 3)`): sample `s` of a pixel takes points `s, s + S, s + 2S, ...` of its
+        object. **Returns:** `p (P, S, n, 3)`, distances `r (M, n)`, `values (M, n, 3)`, the
+        exit factor `T F_t(cos_o) / pi (M, 3)` (zero where `have` is False) and `F_t`."""
+        M = P * S
+        n_sub = points.shape[1] // S
+        # broadcasting over pixels and selecting the object with `where` avoids a gather
+        # indexed by data (which XLA on CPU does slowly)
+        pts = points.reshape(-1, n_sub, S, 3).transpose(0, 2, 1, 3)
+        val = values.reshape(-1, n_sub, S, 3).transpose(0, 2, 1, 3)
+        tob = tobj.reshape(P, S, 1, 1)
+        p, v = pts[0][None], val[0][None]
+        for jo in range(1, pts.shape[0]):
+            p = jnp.where(tob == jo, pts[jo][None], p)
+            v = jnp.where(tob == jo, val[jo][None], v)
+        r = jnp.linalg.norm(p - xo.reshape(P, S, 1, 3), axis=-1).reshape(M, n_sub)
+        v = jnp.broadcast_to(v, (P, S, n_sub, 3)).reshape(M, n_sub, 3)
+        eta = jnp.asarray(self.shape_eta, dtype=float)[jnp.asarray(self.tobj_shape)][tobj]
+        Ft_o = dipole.fresnel_transmittance(cos_o, eta)
+        w_o = jnp.where(have, 1.0, 0.0)[:, None] * T_slot * (Ft_o / jnp.pi)[:, None]
+        return p, r, v, w_o, Ft_o
+
     def _gather_beams(self, cloud, have, xo, cos_o, tobj, T_slot, P, S):
         """Distance-node weights of `F_t(cos_o)/pi sum_i R_d(|x_o - x_i|) Phi_i` over the
         beam rays (power `Phi_i` entering at `x_i`), each sample gathering a stratified
         `1/spp` subset (scaled by spp). No near-field disc: the beam points are the source."""
-        M = P * S
-        n_sub = cloud.beam_points.shape[1] // S
-        pts = cloud.beam_points.reshape(-1, n_sub, S, 3).transpose(0, 2, 1, 3)
-        flx = cloud.beam_flux.reshape(-1, n_sub, S, 3).transpose(0, 2, 1, 3)
-        tob = tobj.reshape(P, S, 1, 1)
-        p, Phi = pts[0][None], flx[0][None]
-        for jo in range(1, pts.shape[0]):
-            p = jnp.where(tob == jo, pts[jo][None], p)
-            Phi = jnp.where(tob == jo, flx[jo][None], Phi)
-        r = jnp.linalg.norm(p - xo.reshape(P, S, 1, 3), axis=-1).reshape(M, n_sub)
-        Phi = jnp.broadcast_to(Phi, (P, S, n_sub, 3)).reshape(M, n_sub, 3)
-        eta = jnp.asarray(self.shape_eta, dtype=float)[jnp.asarray(self.tobj_shape)][tobj]
-        Ft_o = dipole.fresnel_transmittance(cos_o, eta)
-        w_o = jnp.where(have, 1.0, 0.0)[:, None] * T_slot * (Ft_o / jnp.pi)[:, None]
+        p, r, Phi, w_o, _ = self._subsets(
+            cloud.beam_points, cloud.beam_flux, have, xo, cos_o, tobj, T_slot, P, S
+        )
         w = w_o[:, None, :] * Phi  # (M, n_sub, 3): x S for the subset, / S for the mean
         if self._rec is not None:
             self._rec.points(p, w, have)

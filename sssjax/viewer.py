@@ -994,8 +994,17 @@ def serve(path: str | Path, *, host: str = "127.0.0.1", port: int = 8080) -> Non
         p.start()
         print(f"sssjax preview: open {p.url} in a browser (Ctrl-C to stop)", flush=True)
         while True:
-            time.sleep(3600)
+            time.sleep(0.5)  # short sleeps: Ctrl-C is seen promptly
     except KeyboardInterrupt:
         pass
     finally:
+        # a server thread that does not wind down must not keep the process alive after
+        # Ctrl-C: give stop() 10 s, then leave anyway
+        import os
+        import threading
+
+        watchdog = threading.Timer(10.0, lambda: os._exit(0))
+        watchdog.daemon = True
+        watchdog.start()
         p.stop()
+        watchdog.cancel()
