@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -403,19 +404,29 @@ def test_preview_command_prints_url_and_stops_on_ctrl_c():
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
+        # pytest-xdist workers ignore SIGINT, and an ignored signal is inherited: give the
+        # command the default Ctrl-C a terminal would
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
+    lines: list[str] = []
+    # drain the output in a thread: a child blocked on a full pipe could not exit
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+    reader.start()
     try:
         url, t0 = None, time.time()
         while url is None and time.time() - t0 < 60:
-            line = proc.stdout.readline()
-            if not line:
-                break
-            if "open http://" in line:
-                url = line.split("open ", 1)[1].split()[0]
-        assert url is not None and url.startswith("http://127.0.0.1:")
+            url = next(
+                (ln.split("open ", 1)[1].split()[0] for ln in lines if "open http://" in ln), None
+            )
+            time.sleep(0.05)
+        assert url is not None and url.startswith("http://127.0.0.1:"), lines
         assert urllib.request.urlopen(url, timeout=10).status == 200
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=60) == 0  # generous: CI machines are loaded
+        try:
+            rc = proc.wait(timeout=60)  # generous: CI machines are loaded
+        except subprocess.TimeoutExpired:
+            rc = None
+        assert rc == 0, "".join(lines[-30:])
     finally:
         if proc.poll() is None:
             proc.kill()
