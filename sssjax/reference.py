@@ -740,6 +740,9 @@ def _mu_nodes(eta: float, n: int):
     return mu, wx * (1.0 - mu_c) / 2.0
 
 
+# NumPy float64 re-statements of the HG phase and the Fresnel reflectance (the walk uses
+# `sssjax.dipole`'s): kept separate on purpose, so the closed forms that test the walk do not
+# share its code.
 def _hg(cos, g):
     return (1 - g * g) / (4 * np.pi * (1 + g * g - 2 * g * cos) ** 1.5)
 
