@@ -439,7 +439,7 @@ def _trace_data(renderer, key, tgt, mask, progress):
             raise FitError("no pixel sees a translucent object: nothing to fit")
         rows_sel = np.arange(len(pix))
     sub = jax.tree_util.tree_map(
-        lambda a, r=rows_sel: a[:, r] if a.ndim == 4 else a[r], transport.sss_terms()
+        lambda a, r=rows_sel: a[:, :, r] if a.ndim == 4 else a[r], transport.sss_terms()
     )
     return dict(
         sub=sub,
@@ -477,7 +477,7 @@ def _solve(
     tgt_flat = np.concatenate([d["tgt"] for d in data])
     base = np.concatenate([d["base"] for d in data])
     sub = jax.tree_util.tree_map(
-        lambda *xs: jnp.concatenate(xs, axis=1 if xs[0].ndim == 4 else 0),
+        lambda *xs: jnp.concatenate(xs, axis=2 if xs[0].ndim == 4 else 0),
         *[d["sub"] for d in data],
     )
     scale = float(np.mean(np.abs(tgt_flat))) or 1.0  # residuals in units of the mean level

@@ -78,7 +78,19 @@ class Renderer:
         self.block = min(scene.render.tile**2, self.n_pixels)
         self.n_blocks = -(-self.n_pixels // self.block)
         tr = self.tracer
-        self._chain = jax.jit(jax.vmap(tr._chain_block))
+
+        def chain(pix, keys):
+            # one tile per device, each run as its own program (not vmapped: a vmapped
+            # `switch` would run every branch, and the chain skips the bounces of dead rays)
+            base, slots = tr._chain_block(pix[0], keys[0])
+            return base[None], jax.tree_util.tree_map(lambda a: a[None], slots)
+
+        spec = PartitionSpec("tiles")
+        self._chain = jax.jit(
+            jax.shard_map(
+                chain, mesh=self.mesh, in_specs=(spec, spec), out_specs=spec, check_vma=False
+            )
+        )
 
         def sss(slots, keys, cloud):
             return jax.vmap(lambda s, k: tr._sss_block(s, k, cloud))(slots, keys)
@@ -191,12 +203,12 @@ class Renderer:
         Mt, B, K = len(tr.tmat_names), tr.bins, tr.ss_per_sample
         if blocks:
             cat = {
-                f: np.concatenate([b[f] for b in blocks], axis=1 if f == "ms_hist" else 0)
+                f: np.concatenate([b[f] for b in blocks], axis=2 if f == "ms_hist" else 0)
                 for f in blocks[0]
             }
             t_rows = np.concatenate(rows_all)
         else:
-            shapes = {"ms_hist": (Mt, 0, B, 3), "ss_weight": (0, K, 3)}
+            shapes = {"ms_hist": (Mt, 3, 0, B), "ss_weight": (0, K, 3)}
             cat = {
                 f: np.zeros(shapes.get(f, (0, K)), np.int32 if f == "ss_mat" else np.float32)
                 for f in SSS_FIELDS
@@ -220,7 +232,7 @@ def _take_block(out, i: int, valid: np.ndarray) -> dict:
     d = {}
     for f in SSS_FIELDS:
         a = getattr(out, f)[i]
-        d[f] = a[:, valid] if f == "ms_hist" else a[valid]
+        d[f] = a[:, :, valid] if f == "ms_hist" else a[valid]
     return d
 
 

@@ -58,7 +58,7 @@ def shade_sss(
     for m, med in enumerate(media):
         if multiple:
             rd = profiles.Rd(r, med.sigma_a, med.sigmap_s, med.eta, profile)  # (B, 3)
-            L = L + jnp.einsum("pbc,bc->pc", terms.ms_hist[m], rd)
+            L = L + jnp.einsum("cpb,bc->pc", terms.ms_hist[m], rd)
         if single and terms.ss_sp_o.shape[1] > 0:
             f = dipole.single_scatter_integrand(
                 terms.ss_sp_o[..., None],

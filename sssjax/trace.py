@@ -44,6 +44,8 @@ DIFFUSE, MIRROR, TRANSLUCENT = 0, 1, 2
 EPS = 1e-3  # mm: ray offset off surfaces
 R0_MM = 0.1  # mm: scale of the log distance nodes
 _PROPOSAL_EXP = 0.75  # mixture weight of the exponential in the single-scattering proposal
+# bounces past the first run on the alive rays packed into M / k slots (the narrowest that fits)
+_BOUNCE_WIDTHS = (4, 1)
 
 
 class Transport(eqx.Module):
@@ -58,7 +60,9 @@ class Transport(eqx.Module):
     pixels: Int[Array, " P"]
     base: Float[Array, "P 3"]
     t_rows: Int[Array, " Pt"]
-    ms_hist: Float[Array, "Mt Pt B 3"]
+    # channel-major, so that shading is one batched matrix-vector product per material
+    # (10x faster on CPU than a trailing channel axis)
+    ms_hist: Float[Array, "Mt 3 Pt B"]
     r_nodes: Float[Array, " B"]
     ss_mat: Int[Array, "Pt K"]
     ss_sp_o: Float[Array, "Pt K"]
@@ -89,7 +93,7 @@ class Transport(eqx.Module):
 class SSSBlock(eqx.Module):
     """Subsurface terms of a block of pixels (the translucent part of a `Transport`)."""
 
-    ms_hist: Float[Array, "Mt P B 3"]
+    ms_hist: Float[Array, "Mt 3 P B"]
     ss_mat: Int[Array, "P K"]
     ss_sp_o: Float[Array, "P K"]
     ss_sp_i: Float[Array, "P K"]
@@ -351,21 +355,14 @@ class SceneTracer:
         S = self.spp
         P = pixels.shape[0]
         M = P * S
-        nl = sc.render.light_samples
         k_cam, k_chain = jax.random.split(key)
         o, d = camera_rays(sc.camera, pixels, stratified_2d(k_cam, S, (P,)))
-        o, d = o.reshape(M, 3), d.reshape(M, 3)
-        T = jnp.ones((M, 3))
-        alive = jnp.ones(M, bool)
-        base = jnp.zeros((M, 3))
-        bg = jnp.asarray(sc.render.background, dtype=float)
-        kind = jnp.asarray(self.shape_kind)
-        albedo = jnp.asarray(self.shape_albedo, dtype=float)
-        refl = jnp.asarray(self.shape_refl, dtype=float)
-        eta_s = jnp.asarray(self.shape_eta, dtype=float)
-        tobj_of = jnp.asarray(self.shape_tobj)
-        has_diffuse = bool(np.any(self.shape_kind == DIFFUSE))
-        slot = dict(
+        st = dict(
+            o=o.reshape(M, 3),
+            d=d.reshape(M, 3),
+            T=jnp.ones((M, 3)),
+            alive=jnp.ones(M, bool),
+            base=jnp.zeros((M, 3)),
             have=jnp.zeros(M, bool),
             xo=jnp.zeros((M, 3)),
             din=jnp.zeros((M, 3)),
@@ -374,62 +371,125 @@ class SceneTracer:
             T_slot=jnp.zeros((M, 3)),
             E_o=jnp.zeros((M, 3)),
         )
-        for depth in range(sc.render.max_depth + 1):
-            t, n, sid = self.intersect(o, d)
-            tl, rad = self.lights.intersect(o, d, t)
-            hit_light = alive & (tl < t)
-            base = base + jnp.where(hit_light[:, None], T * rad, 0.0)
-            hit = alive & ~hit_light & (sid >= 0)
-            miss = alive & ~hit_light & (sid < 0)
-            base = base + jnp.where(miss[:, None], T * bg, 0.0)
-            sidc = jnp.maximum(sid, 0)
-            k = jnp.where(hit, kind[sidc], -1)
-            x = o + jnp.where(hit, t, 0.0)[:, None] * d
-            cos = -jnp.sum(d * n, axis=-1)
-            ns = jnp.where((cos >= 0)[:, None], n, -n)  # normal facing the ray
-            is_t = (k == TRANSLUCENT) & (cos > 0)
-            eta = eta_s[sidc]
-            if self._rec is not None:
-                self._rec.chain(depth, o, d, x, tl, alive, hit_light, hit, k, is_t & ~slot["have"])
-            if has_diffuse or self.sss_on:
-                # one set of shadow rays serves both: plain irradiance on diffuse surfaces,
-                # Fresnel-transmitted irradiance E(x_o) (the dipole's near field) on
-                # translucent ones
-                ul = stratified_2d(jax.random.fold_in(k_chain, depth), nl * nl, (M,))
-
-                def transmit(c, is_t=is_t, eta=eta):
-                    # c is (M,) for point lights and (M, strata) for area lights
-                    shape = (-1,) + (1,) * (c.ndim - 1)
-                    return jnp.where(
-                        is_t.reshape(shape),
-                        dipole.fresnel_transmittance(c, eta.reshape(shape)),
-                        1.0,
-                    )
-
-                E = direct_irradiance(self.lights, x, ns, ul, self.occluded, transmit)
-                is_d = (k == DIFFUSE)[:, None]
-                E_d = E
-                if self.lights.n_beam and has_diffuse:
-                    E_d = E + beam_irradiance(self.lights, x, ns, self.occluded)
-                base = base + jnp.where(is_d, T * albedo[sidc] / jnp.pi * E_d, 0.0)
-            Fr = dipole.fresnel_reflectance(cos, eta)
-            if self.sss_on:
-                first = is_t & ~slot["have"]
-                dr, _ = refract(d, n, eta[:, None])
-                new = dict(have=True, xo=x, din=dr, cos_o=cos, tobj=tobj_of[sidc], T_slot=T, E_o=E)
-                for f, v in new.items():
-                    sel = first if slot[f].ndim == 1 else first[:, None]
-                    slot[f] = jnp.where(sel, v, slot[f])
-            factor = jnp.where(
-                (k == MIRROR)[:, None], refl[sidc], jnp.where(is_t[:, None], Fr[:, None], 0.0)
+        st = self._bounce(0, st, self._light_u(k_chain, 0, M))
+        if self._rec is not None:
+            # recording runs eagerly: every bounce at full width, so the hooks see every ray
+            for depth in range(1, sc.render.max_depth + 1):
+                st = self._bounce(depth, st, self._light_u(k_chain, depth, M))
+        elif sc.render.max_depth > 0:
+            st = jax.lax.fori_loop(
+                1, sc.render.max_depth + 1, lambda dep, s: self._bounce_alive(dep, s, k_chain), st
             )
-            T = T * factor
-            alive = (k == MIRROR) | is_t
-            o = x + EPS * ns
-            d = d - 2.0 * jnp.sum(d * ns, axis=-1, keepdims=True) * ns
-        base = base.reshape(P, S, 3).mean(axis=1)
-        slot = {f: v.reshape(P, S, *v.shape[1:]) for f, v in slot.items()}
+        base = st["base"].reshape(P, S, 3).mean(axis=1)
+        slot = {f: st[f].reshape(P, S, *st[f].shape[1:]) for f in SLOT_FIELDS}
         return base, slot
+
+    def _light_u(self, k_chain, depth, M):
+        """The stratified area-light samples of bounce `depth` for all `M` rays of a block."""
+        nl = self.scene.render.light_samples
+        return stratified_2d(jax.random.fold_in(k_chain, depth), nl * nl, (M,))
+
+    def _bounce_alive(self, depth, st, k_chain):
+        """One bounce past the camera's, run only on the rays still alive.
+
+        After the first hit most rays have ended (on a diffuse surface, an emitter or the
+        background), so the alive ones are packed into the narrowest of `_BOUNCE_WIDTHS`
+        that holds them (a block with none skips the bounce) and scattered back: the cost
+        follows the rays that bounce, not the block. The packing keeps each ray's own random
+        numbers, so the image is that of the unpacked bounce.
+        """
+        M = st["alive"].shape[0]
+        ul = self._light_u(k_chain, depth, M)
+        widths = sorted({max(-(-M // k), 1) for k in _BOUNCE_WIDTHS})
+
+        def packed(width):
+            def run(st):
+                if width == M:
+                    return self._bounce(depth, st, ul)
+                idx = jnp.nonzero(st["alive"], size=width, fill_value=M)[0]
+                sub = {
+                    f: jnp.take(v, idx, axis=0, mode="fill", fill_value=0) for f, v in st.items()
+                }
+                sub = self._bounce(depth, sub, jnp.take(ul, idx, axis=0, mode="fill", fill_value=0))
+                return {f: v.at[idx].set(sub[f], mode="drop") for f, v in st.items()}
+
+            return run
+
+        n_alive = jnp.sum(st["alive"])
+        branch = jnp.where(
+            n_alive == 0, 0, 1 + jnp.searchsorted(jnp.asarray(widths), n_alive, side="left")
+        )
+        return jax.lax.switch(branch, [lambda s: s] + [packed(w) for w in widths], st)
+
+    def _bounce(self, depth, st, ul):
+        """Advance every ray of `st` by one hit: emitters and background it sees, direct
+        light on diffuse surfaces, the first translucent hit's slot, and the specular
+        continuation (mirror, or the Fresnel reflection of a translucent boundary)."""
+        sc = self.scene
+        o, d, T, alive, base = st["o"], st["d"], st["T"], st["alive"], st["base"]
+        slot = {f: st[f] for f in SLOT_FIELDS}
+        bg = jnp.asarray(sc.render.background, dtype=float)
+        kind = jnp.asarray(self.shape_kind)
+        albedo = jnp.asarray(self.shape_albedo, dtype=float)
+        refl = jnp.asarray(self.shape_refl, dtype=float)
+        eta_s = jnp.asarray(self.shape_eta, dtype=float)
+        tobj_of = jnp.asarray(self.shape_tobj)
+        has_diffuse = bool(np.any(self.shape_kind == DIFFUSE))
+        t, n, sid = self.intersect(o, d)
+        tl, rad = self.lights.intersect(o, d, t)
+        hit_light = alive & (tl < t)
+        base = base + jnp.where(hit_light[:, None], T * rad, 0.0)
+        hit = alive & ~hit_light & (sid >= 0)
+        miss = alive & ~hit_light & (sid < 0)
+        base = base + jnp.where(miss[:, None], T * bg, 0.0)
+        sidc = jnp.maximum(sid, 0)
+        k = jnp.where(hit, kind[sidc], -1)
+        x = o + jnp.where(hit, t, 0.0)[:, None] * d
+        cos = -jnp.sum(d * n, axis=-1)
+        ns = jnp.where((cos >= 0)[:, None], n, -n)  # normal facing the ray
+        is_t = (k == TRANSLUCENT) & (cos > 0)
+        eta = eta_s[sidc]
+        if self._rec is not None:
+            self._rec.chain(depth, o, d, x, tl, alive, hit_light, hit, k, is_t & ~slot["have"])
+        E = None
+        if has_diffuse or self.sss_on:
+            # one set of shadow rays serves both: plain irradiance on diffuse surfaces,
+            # Fresnel-transmitted irradiance E(x_o) (the dipole's near field) on
+            # translucent ones
+            def transmit(c, is_t=is_t, eta=eta):
+                # c is (M,) for point lights and (M, strata) for area lights
+                shape = (-1,) + (1,) * (c.ndim - 1)
+                return jnp.where(
+                    is_t.reshape(shape),
+                    dipole.fresnel_transmittance(c, eta.reshape(shape)),
+                    1.0,
+                )
+
+            E = direct_irradiance(self.lights, x, ns, ul, self.occluded, transmit)
+            is_d = (k == DIFFUSE)[:, None]
+            E_d = E
+            if self.lights.n_beam and has_diffuse:
+                E_d = E + beam_irradiance(self.lights, x, ns, self.occluded)
+            base = base + jnp.where(is_d, T * albedo[sidc] / jnp.pi * E_d, 0.0)
+        Fr = dipole.fresnel_reflectance(cos, eta)
+        if self.sss_on:
+            first = is_t & ~slot["have"]
+            dr, _ = refract(d, n, eta[:, None])
+            new = dict(have=True, xo=x, din=dr, cos_o=cos, tobj=tobj_of[sidc], T_slot=T, E_o=E)
+            for f, v in new.items():
+                sel = first if slot[f].ndim == 1 else first[:, None]
+                slot[f] = jnp.where(sel, v, slot[f])
+        factor = jnp.where(
+            (k == MIRROR)[:, None], refl[sidc], jnp.where(is_t[:, None], Fr[:, None], 0.0)
+        )
+        return dict(
+            o=x + EPS * ns,
+            d=d - 2.0 * jnp.sum(d * ns, axis=-1, keepdims=True) * ns,
+            T=T * factor,
+            alive=(k == MIRROR) | is_t,
+            base=base,
+            **slot,
+        )
 
     # -- phase 2: subsurface terms of the pixels that see a translucent object -------------
     @property
@@ -473,7 +533,7 @@ class SceneTracer:
                 weight=jnp.zeros((P, 0, 3)),
             )
         return SSSBlock(
-            ms_hist=hist,
+            ms_hist=jnp.transpose(hist, (0, 3, 1, 2)),
             ss_mat=ss["mat"],
             ss_sp_o=ss["sp_o"],
             ss_sp_i=ss["sp_i"],

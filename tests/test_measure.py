@@ -95,3 +95,14 @@ def test_better_profiles_recovered_by_their_own_model_and_biased_under_the_dipol
         [classic.sigma_a / np.asarray(m.sigma_a), classic.sigmap_s / np.asarray(m.sigmap_s)]
     )
     assert np.max(np.abs(bias - 1)) > 0.05, bias
+
+
+def test_unfinished_profile_fit_is_not_reported_converged():
+    """Float32 fits count as converged once the remaining Gauss-Newton step is within 1% of
+    the standard error; a fit stopped after one step from far away must not pass that."""
+    m, prof = analytic_profile("marble", np.linspace(0.5, 40.0, 120), rel_noise=0.01)
+    stopped = fit_profile(prof, 1.3, init=(0.1, 10.0), max_steps=1)
+    assert not any(stopped.converged)
+    done = fit_profile(prof, 1.3, init=(0.1, 10.0))
+    assert all(done.converged)
+    np.testing.assert_allclose(done.sigmap_s, m.sigmap_s, rtol=0.05)
