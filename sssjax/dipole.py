@@ -31,6 +31,7 @@ __all__ = [
     "refracted_distance",
     "sigma_tc",
     "single_scatter_integrand",
+    "single_scatter_kernel",
     "single_scatter_flat",
 ]
 
@@ -221,8 +222,23 @@ def single_scatter_integrand(
     **Returns:** radiance / (incident radiance x mm).
     """
     F = fresnel_transmittance(cos_i, eta) * fresnel_transmittance(cos_o, eta)
-    att = jnp.exp(-jnp.asarray(sigma_t) * (jnp.asarray(sp_i) + jnp.asarray(sp_o)))
-    return jnp.asarray(sigma_s) * F * hg_phase(cos_phase, g) * att
+    s = jnp.asarray(sp_i) + jnp.asarray(sp_o)
+    return F * single_scatter_kernel(s, cos_phase, sigma_s, sigma_t, g)
+
+
+def single_scatter_kernel(
+    s: ArrayLike, cos_phase: ArrayLike, sigma_s: ArrayLike, sigma_t: ArrayLike, g: ArrayLike
+) -> Array:
+    """The medium's part of `single_scatter_integrand`: `sigma_s p(cos_phase) e^{-sigma_t s}`.
+
+    **Arguments:** `s = s'_i + s'_o`, the refracted path length inside, mm; `cos_phase` as in
+    `single_scatter_integrand`; `sigma_s`, `sigma_t` in mm^-1; `g`.
+
+    **Returns:** mm^-1 sr^-1. The Fresnel factors depend on `eta` and the geometry only, so
+    a fit (which holds `eta`) folds them into the stored sample weights once.
+    """
+    att = jnp.exp(-jnp.asarray(sigma_t) * jnp.asarray(s))
+    return jnp.asarray(sigma_s) * hg_phase(cos_phase, g) * att
 
 
 def single_scatter_flat(

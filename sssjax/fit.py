@@ -28,10 +28,11 @@ import numpy as np
 import optimistix as optx
 
 from ._numerics import safe_sqrt
+from ._solvers import NormalGaussNewton, NormalLevenbergMarquardt
 from .media import Medium
 from .render import as_key, renderer_for
 from .scene import Scene, did_you_mean
-from .shade import shade_sss
+from .shade import ShadingTerms, prepare, shade_prepared
 
 __all__ = ["fit", "FitResult", "FitError", "PARAM_FIELDS"]
 
@@ -109,17 +110,32 @@ class FitResult:
 
 def _resolve_params(
     scene: Scene, params: Sequence[str] | None
-) -> tuple[list[tuple[str, str]], bool]:
-    """The free `(material, field)` pairs, and whether the exposure is free."""
+) -> tuple[list[tuple[str, str]], bool, list[int]]:
+    """The free `(material, field)` pairs, whether the exposure is free, and the indices of
+    the lights whose intensity is free."""
     tm = scene.translucent_materials
     if not tm:
         raise FitError("the scene has no translucent material to fit")
     if params is None:
-        return [(m, f) for m in tm for f in ("sigma_a", "sigma_s")], False
+        return [(m, f) for m in tm for f in ("sigma_a", "sigma_s")], False, []
     out = []
     exposure = "exposure" in params
+    lights = []
     for p in params:
         if p == "exposure":
+            continue
+        if p.startswith("lights."):
+            idx = p.removeprefix("lights.")
+            n = len(scene.lights)
+            if not (idx.isdigit() and int(idx) < n):
+                raise FitError(
+                    f"parameter {p!r}: no such light (the scene has {n}: lights.0 .. "
+                    f"lights.{n - 1})"
+                    if n
+                    else f"parameter {p!r}: the scene has no lights"
+                )
+            if int(idx) not in lights:
+                lights.append(int(idx))
             continue
         mat, _, field = p.rpartition(".")
         if not mat:
@@ -133,7 +149,7 @@ def _resolve_params(
                 f"parameter {p!r}: no translucent material {mat!r} (known: {', '.join(tm)})"
             )
         if field not in PARAM_FIELDS:
-            known = ", ".join((*PARAM_FIELDS, "exposure"))
+            known = ", ".join((*PARAM_FIELDS, "exposure", "lights.N"))
             hint = did_you_mean(field, [*PARAM_FIELDS, "exposure"])
             raise FitError(f"unknown parameter {field!r}{hint} (known: {known})")
         out.append((mat, field))
@@ -142,8 +158,16 @@ def _resolve_params(
         if {"sigma_s", "sigmap_s"} <= fields:
             raise FitError(f"{mat}: free either sigma_s or sigmap_s, not both")
     if not out:
-        raise FitError("params: free at least one coefficient (exposure alone fits nothing)")
-    return out, exposure
+        raise FitError(
+            "params: free at least one coefficient (exposure or light intensities alone fit "
+            "no material)"
+        )
+    if lights and len(lights) == len(scene.lights) and exposure:
+        raise FitError(
+            "params: the exposure and every light's intensity are free, but only their "
+            "product is determined: fix the exposure or one light"
+        )
+    return out, exposure, sorted(lights)
 
 
 def _load_target(target, shape: tuple[int, int]) -> np.ndarray:
@@ -205,10 +229,14 @@ def fit(
       `sigma_s` by single scattering alone) (the material may be omitted when there is
       only one), and
       `"exposure"`: one overall factor on the rendered image (a nuisance parameter for an
-      uncalibrated camera or light). Default: `sigma_a` and `sigma_s` of every translucent
-      material.
-    - `init`: initial values by `"MATERIAL.FIELD"` (RGB, mm^-1, > 0; `g` in (-1, 1)) or
-      `"exposure"`;
+      uncalibrated camera or light), and `"lights.N"`: a factor on the emission of the
+      scene's `N`-th light (0-based, in `[[lights]]` order; radiance, intensity or power
+      alike), for lamps of unknown relative power. Each free light costs one more trace
+      (the image is linear in each light's emission, so the fit traces each free light
+      alone and shades their sum); with every light free, the exposure must be fixed.
+      Default: `sigma_a` and `sigma_s` of every translucent material.
+    - `init`: initial values by `"MATERIAL.FIELD"` (RGB, mm^-1, > 0; `g` in (-1, 1)),
+      `"exposure"` or `"lights.N"` (factors > 0);
       default: the scene's (exposure 1).
     - `mask`: `(H, W)` boolean pixels to fit; default: every pixel that sees a translucent
       object (the only pixels the coefficients affect).
@@ -236,7 +264,7 @@ def fit(
     t_start = time.perf_counter()
     cam = scene.camera
     tgt = _load_target(target, (cam.height, cam.width))
-    free, exposure = _resolve_params(scene, params)
+    free, exposure, lights = _resolve_params(scene, params)
     media0 = scene.media()
     init = dict(init or {})
     start = {}
@@ -257,6 +285,13 @@ def fit(
     e0 = float(np.asarray(init.pop("exposure", 1.0), dtype=np.float64)) if exposure else 1.0
     if not (np.isfinite(e0) and e0 > 0):
         raise FitError(f"initial exposure must be finite and > 0, got {e0}")
+    light0 = []
+    for i in lights:
+        v = init.pop(f"lights.{i}", 1.0)
+        v = float(np.asarray(v, dtype=np.float64)) if np.ndim(v) == 0 else np.nan
+        if not (np.isfinite(v) and v > 0):
+            raise FitError(f"initial lights.{i} must be one finite factor > 0, got {v}")
+        light0.append(v)
     if init:
         raise FitError(f"init names parameters that are not free: {sorted(init)}")
     if not (isinstance(traces, int) and traces >= 1):
@@ -272,7 +307,9 @@ def fit(
     if solver not in ("lm", "gn", "bfgs"):
         raise FitError(f"unknown solver {solver!r} (known: lm, gn, bfgs)")
 
-    renderer = renderer_for(scene)
+    # one trace per free light (only it emitting) and one for the other lights: the image is
+    # linear in each light's emission, so the fit scales and sums their shadings
+    renderers = [renderer_for(sc) for sc in _light_groups(scene, lights)]
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != (cam.height, cam.width):
@@ -282,20 +319,26 @@ def fit(
     # several independent traces average out the noise that one trace (its irradiance
     # cloud above all) shares across every pixel, which a single trace fits as signal
     keys = [key0 if k == 0 else jax.random.fold_in(key0, 1000 + k) for k in range(traces)]
-    data = [_trace_data(renderer, k, tgt, mask, progress) for k in keys]
+    data = [_trace_data(renderers, k, tgt, mask, progress, media0) for k in keys]
     trace_time = time.perf_counter() - t0
-    names = [f"{m}.{f}.{_CH[c]}" for m, f in free for c in range(3)] + ["exposure"] * exposure
-    # unconstrained coordinates: log of the coefficients and the exposure, atanh of g
-    tanh_idx = np.array([f == "g" for _, f in free for _ in range(3)] + [False] * exposure)
+    names = [f"{m}.{f}.{_CH[c]}" for m, f in free for c in range(3)]
+    names += [f"lights.{i}" for i in lights] + ["exposure"] * exposure
+    # unconstrained coordinates: log of the coefficients, light factors and the exposure,
+    # atanh of g
+    tanh_idx = np.array(
+        [f == "g" for _, f in free for _ in range(3)] + [False] * (len(lights) + exposure)
+    )
     y0 = jnp.asarray(
         np.concatenate(
             [np.arctanh(start[k]) if k[1] == "g" else np.log(start[k]) for k in free]
+            + [np.log(np.asarray(light0, dtype=np.float64))]
             + [[np.log(e0)]] * exposure
         )
     )
     fn_kw = dict(
         free=tuple(free),
         exposure=exposure,
+        n_lights=len(lights),
         loss=loss,
         media0=media0,
         solver=solver,
@@ -318,7 +361,9 @@ def fit(
     trace_sd = None
     if refine:
         t0 = time.perf_counter()
-        fresh = _trace_data(renderer, jax.random.fold_in(key0, 99_991), tgt, mask, progress)
+        fresh = _trace_data(
+            renderers, jax.random.fold_in(key0, 99_991), tgt, mask, progress, media0
+        )
         trace_time += time.perf_counter() - t0
         if progress:
             print("refine: fit a fresh trace from the solution", file=sys.stderr, flush=True)
@@ -401,12 +446,25 @@ def fit(
             "on the shape of the image alone (see its error bar)"
         )
     converged, status, message = run["converged"], run["status"], run["message"]
+    if not converged:
+        y_start = np.asarray(y0, dtype=np.float64)
+        moved = np.abs(np.asarray(y, dtype=np.float64) - y_start) > np.log(10.0)
+        far = [n for n, m, t in zip(names, moved, tanh_idx, strict=True) if m and not t]
+        if far:
+            warnings.append(
+                f"no convergence, and {', '.join(far)} moved more than 10x from the start: "
+                "the minimum may lie at the edge (e.g. sigma_a -> 0 when the target is "
+                "brighter than the scene allows); check the target's exposure and outliers "
+                "(loss='cauchy', or free the exposure)"
+            )
+    # an unidentified parameter has an infinite error bar (not 0 x inf = nan)
+    stderr = np.where(np.isfinite(sd_log), dval * np.where(np.isfinite(sd_log), sd_log, 0), np.inf)
     y_media = y[: 3 * len(free)]
     fitted = dict(zip(order, _media_of(tuple(free), order, y_media, run["args"][3]), strict=True))
     return FitResult(
         names=names,
         values=dict(zip(names, vals.tolist(), strict=True)),
-        stderr=dict(zip(names, (dval * sd_log).tolist(), strict=True)),
+        stderr=dict(zip(names, stderr.tolist(), strict=True)),
         initial=dict(zip(names, _values(y0, tanh_idx).tolist(), strict=True)),
         correlation=np.nan_to_num(corr).tolist(),
         media=fitted,
@@ -424,10 +482,35 @@ def fit(
     )
 
 
-def _trace_data(renderer, key, tgt, mask, progress):
-    """Trace once and keep what the fit needs: the subsurface terms of the fitted pixels,
-    their target values and their medium-independent radiance (`base`)."""
-    transport = renderer.trace(key, progress=progress)
+_EMISSION = {"AreaLight": "radiance", "PointLight": "intensity", "BeamLight": "power"}
+
+
+def _light_groups(scene: Scene, free_lights: Sequence[int]) -> list[Scene]:
+    """Scenes whose transports add up to the scene's: one per free light (only that light
+    emitting), then one with the other lights (absent when every light is free). All keep
+    every light, dark or not, so rays, samples and random numbers are those of the scene and
+    each trace is exactly its lights' share."""
+    if not free_lights:
+        return [scene]
+
+    def dark(lt):
+        f = _EMISSION[type(lt).__name__]
+        return dataclasses.replace(lt, **{f: np.zeros_like(getattr(lt, f))})
+
+    def only(keep):
+        lights = tuple(lt if i in keep else dark(lt) for i, lt in enumerate(scene.lights))
+        return scene.replace(lights=lights)
+
+    rest = [i for i in range(len(scene.lights)) if i not in free_lights]
+    return [only({i}) for i in free_lights] + ([only(set(rest))] if rest else [])
+
+
+def _trace_data(renderers, key, tgt, mask, progress, media0):
+    """Trace once per light group and keep what the fit needs: the subsurface terms of the
+    fitted pixels, their target values and their medium-independent radiance (`base`),
+    per group."""
+    transports = [r.trace(key, progress=progress) for r in renderers]
+    transport = transports[0]
     pix = np.asarray(transport.translucent_pixels())
     rows = np.asarray(transport.t_rows)
     if mask is not None:
@@ -438,13 +521,13 @@ def _trace_data(renderer, key, tgt, mask, progress):
         if len(pix) == 0:
             raise FitError("no pixel sees a translucent object: nothing to fit")
         rows_sel = np.arange(len(pix))
-    sub = jax.tree_util.tree_map(
-        lambda a, r=rows_sel: a[:, :, r] if a.ndim == 4 else a[r], transport.sss_terms()
-    )
+    # eta is held in a fit: fold its Fresnel factors into the weights once, here
+    etas = [media0[n].eta for n in transport.materials]
+    sel = jnp.asarray(rows_sel)
     return dict(
-        sub=sub,
+        sub=[prepare(t.sss_terms(), etas).rows(sel) for t in transports],
         tgt=tgt.reshape(-1, 3)[pix[rows_sel]],
-        base=np.asarray(transport.base)[rows[rows_sel]],
+        base=np.stack([np.asarray(t.base)[rows[rows_sel]] for t in transports]),
         r_nodes=transport.r_nodes,
         materials=transport.materials,
     )
@@ -456,6 +539,7 @@ def _solve(
     *,
     free,
     exposure,
+    n_lights,
     loss,
     media0,
     solver,
@@ -474,39 +558,23 @@ def _solve(
 
     With relative weighting, each pixel's weight is `1 / (value / mean + rel_floor)` with
     `value` the target's, or the model's at `weights_at` when given."""
-    tgt_flat = np.concatenate([d["tgt"] for d in data])
-    base = np.concatenate([d["base"] for d in data])
-    sub = jax.tree_util.tree_map(
-        lambda *xs: jnp.concatenate(xs, axis=2 if xs[0].ndim == 4 else 0),
-        *[d["sub"] for d in data],
-    )
-    scale = float(np.mean(np.abs(tgt_flat))) or 1.0  # residuals in units of the mean level
-    order = data[0]["materials"]
     dt = jnp.float32 if jnp.asarray(y0).dtype == jnp.float32 else jnp.float64
-    args = (
-        sub,
-        jnp.asarray(tgt_flat / scale, dtype=dt),
-        data[0]["r_nodes"],
-        tuple(media0[m] for m in order),
-        scale,
-        jnp.asarray(loss_scale, dtype=dt),
-        jnp.asarray(base / scale, dtype=dt),
-        jnp.ones(tgt_flat.shape, dtype=dt),
-    )
+    args, order = _fit_args(data, media0, loss_scale, dt)
+    layout = _Layout(free, order, exposure, n_lights)
     if weighting == "relative":
         if weights_at is None:
-            level = np.abs(tgt_flat) / scale
+            level = np.abs(np.asarray(args[1]))  # the target, in units of its mean
         else:
-            level = np.abs(np.asarray(_model(free, order, exposure, weights_at, args)))
+            level = np.abs(np.asarray(_model(layout, weights_at, args)))
         args = (*args[:7], jnp.asarray(1.0 / (level + rel_floor), dtype=dt))
-    residuals = _residual_fn(free, order, loss, exposure)
+    residuals = _residual_fn(layout, loss)
     if solver in ("lm", "gn"):
-        slv = (optx.LevenbergMarquardt if solver == "lm" else optx.GaussNewton)(rtol, atol)
+        slv = (NormalLevenbergMarquardt if solver == "lm" else NormalGaussNewton)(rtol, atol)
         options = {"jac": "fwd"}
     else:
         slv = optx.BFGS(rtol, atol)
         options = {}
-    fn = _solver_fn(free, order, solver == "bfgs", loss, exposure)
+    fn = _solver_fn(layout, solver == "bfgs", loss)
     state = _init(slv, fn, y0, args, options)
     y = y0
     loss0 = float(_loss(residuals, y0, args))
@@ -560,6 +628,29 @@ def _solve(
     )
 
 
+def _fit_args(data, media0, loss_scale, dt):
+    """The residual functions' `args` for the traces in `data` (fitted jointly): prepared
+    subsurface terms (per light group), target and medium-independent radiance (per light
+    group) in units of the target's mean level, the media held fixed, the robust-loss scale
+    and unit weights."""
+    tgt_flat = np.concatenate([d["tgt"] for d in data])
+    base = np.concatenate([d["base"] for d in data], axis=1)  # (light groups, P, 3)
+    scale = float(np.mean(np.abs(tgt_flat))) or 1.0  # residuals in units of the mean level
+    order = data[0]["materials"]
+    groups = range(len(data[0]["sub"]))
+    args = (
+        tuple(ShadingTerms.concat([d["sub"][g] for d in data]) for g in groups),
+        jnp.asarray(tgt_flat / scale, dtype=dt),
+        data[0]["r_nodes"],
+        tuple(media0[m] for m in order),
+        scale,
+        jnp.asarray(loss_scale, dtype=dt),
+        jnp.asarray(base / scale, dtype=dt),
+        jnp.ones(tgt_flat.shape, dtype=dt),
+    )
+    return args, order
+
+
 def _values(y, tanh_idx) -> np.ndarray:
     """Parameter values from the solver's unconstrained coordinates (float64 NumPy)."""
     y = np.asarray(y, dtype=np.float64)
@@ -586,20 +677,37 @@ def _media_of(free, order, y, media0):
 
 # The residual and solver functions are cached per parameter layout, and the data travel as
 # `args`, so a second fit of the same layout reuses the compiled step.
+@dataclasses.dataclass(frozen=True)
+class _Layout:
+    """What the solver's coordinates mean: 3 per free `(material, field)` (log, or atanh for
+    `g`), then the log intensity factor of each free light, then the log exposure."""
+
+    free: tuple
+    order: tuple  # the transport's translucent materials
+    exposure: bool
+    n_lights: int
+
+
 @eqx.filter_jit
-def _model(free, order, exposure, y, args):
-    """The fitted pixels' radiance at log-parameters `y`, in units of the target's mean."""
+def _model(layout: _Layout, y, args):
+    """The fitted pixels' radiance at the solver's coordinates `y`, in units of the target's
+    mean: each light group's shading, scaled by its free intensity factor (groups past the
+    free lights are held at 1), summed, times the exposure."""
     sub, _, r_nodes, media0, scale, _, base_j, _ = args
-    L = shade_sss(sub, _media_of(free, order, y[: 3 * len(free)], media0), r_nodes)
-    model = L / scale + base_j
-    return jnp.exp(y[-1]) * model if exposure else model
+    n_c = 3 * len(layout.free)
+    media = _media_of(layout.free, layout.order, y[:n_c], media0)
+    model = 0.0
+    for g, terms in enumerate(sub):
+        L = shade_prepared(terms, media, r_nodes) / scale + base_j[g]
+        model = model + (jnp.exp(y[n_c + g]) * L if g < layout.n_lights else L)
+    return jnp.exp(y[-1]) * model if layout.exposure else model
 
 
 @functools.lru_cache(maxsize=32)
-def _residual_fn(free, order, loss: str = "l2", exposure: bool = False):
+def _residual_fn(layout: _Layout, loss: str = "l2"):
     def residuals(y, args):
         target_j, c, wts = args[1], args[5], args[7]
-        r = ((_model(free, order, exposure, y, args) - target_j) * wts).reshape(-1)
+        r = ((_model(layout, y, args) - target_j) * wts).reshape(-1)
         # robust losses as residual transforms r -> sign(r) sqrt(2 rho(r)): least squares on
         # the transformed residuals minimises sum rho(r)
         if loss == "cauchy":
@@ -613,8 +721,8 @@ def _residual_fn(free, order, loss: str = "l2", exposure: bool = False):
 
 
 @functools.lru_cache(maxsize=32)
-def _solver_fn(free, order, scalar: bool, loss: str = "l2", exposure: bool = False):
-    residuals = _residual_fn(free, order, loss, exposure)
+def _solver_fn(layout: _Layout, scalar: bool, loss: str = "l2"):
+    residuals = _residual_fn(layout, loss)
     if scalar:
         return lambda y, args: (0.5 * jnp.sum(residuals(y, args) ** 2), None)
     return lambda y, args: (residuals(y, args), None)
@@ -640,7 +748,8 @@ def _init(slv, fn, y0, args, options):
 def _step(slv, fn, residuals, y, args, options, state):
     y, state, _ = slv.step(fn, y, args, options, state, frozenset())
     done, res = slv.terminate(fn, y, args, options, state, frozenset())
-    return y, state, done, res, 0.5 * jnp.sum(residuals(y, args) ** 2)
+    # the solver already evaluated the loss at the point it returns (its accepted point)
+    return y, state, done, res, state.f_info.as_min()
 
 
 def _progress_line(step: int, loss: float, names: list[str], vals: np.ndarray) -> None:

@@ -11,14 +11,23 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
+import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from . import dipole, profiles
 from .media import Medium
 from .trace import SSSBlock, Transport
 
-__all__ = ["shade", "shade_sss", "shade_image", "media_tuple"]
+__all__ = [
+    "shade",
+    "shade_sss",
+    "shade_image",
+    "media_tuple",
+    "ShadingTerms",
+    "prepare",
+    "shade_prepared",
+]
 
 
 def media_tuple(transport: Transport, media: Mapping[str, Medium] | Sequence[Medium]):
@@ -37,6 +46,102 @@ def media_tuple(transport: Transport, media: Mapping[str, Medium] | Sequence[Med
     return media
 
 
+class ShadingTerms(eqx.Module):
+    """The subsurface terms of a block of pixels, reduced to what `sigma_a`, `sigma_s`, `g`
+    act on: everything fixed by the geometry and `eta` (the Fresnel factors of single
+    scattering and its proposal pdf) folded into the sample weights.
+
+    `prepare` makes them once per trace; `shade_prepared` evaluates them for any media. A fit
+    holds `eta`, so it prepares once and re-shades every iteration.
+    """
+
+    ms_hist: Float[Array, "Mt 3 P B"]  # profile gather weights on the distance nodes
+    ss_mat: Int[Array, "P K"]  # material of each single-scattering record (-1: none)
+    ss_length: Float[Array, "P K"]  # s'_i + s'_o, mm
+    ss_cos_phase: Float[Array, "P K"]
+    ss_weight: Float[Array, "3 P K"]  # record weight x F_t(w_i) F_t(w_o) / pdf, channel-major
+    profile: str = eqx.field(static=True, default="dipole")
+
+    def rows(self, rows) -> ShadingTerms:
+        """The terms of pixel rows `rows` (an index array)."""
+        return ShadingTerms(
+            self.ms_hist[:, :, rows],
+            self.ss_mat[rows],
+            self.ss_length[rows],
+            self.ss_cos_phase[rows],
+            self.ss_weight[:, rows],
+            self.profile,
+        )
+
+    @staticmethod
+    def concat(parts: Sequence[ShadingTerms]) -> ShadingTerms:
+        """The terms of several blocks, their pixel rows one after another."""
+        cat = jnp.concatenate
+        return ShadingTerms(
+            cat([p.ms_hist for p in parts], axis=2),
+            cat([p.ss_mat for p in parts]),
+            cat([p.ss_length for p in parts]),
+            cat([p.ss_cos_phase for p in parts]),
+            cat([p.ss_weight for p in parts], axis=1),
+            parts[0].profile,
+        )
+
+
+def prepare(terms: Transport | SSSBlock, etas: Sequence) -> ShadingTerms:
+    """Fold the `eta`-dependent factors of `terms` into its weights (`etas`: one refractive
+    index per translucent material, in the transport's order)."""
+    mat = terms.ss_mat
+    eta = jnp.asarray([jnp.asarray(e) for e in etas] or [1.0])[jnp.clip(mat, 0, None)]
+    F = dipole.fresnel_transmittance(terms.ss_cos_i, eta)
+    F = F * dipole.fresnel_transmittance(terms.ss_cos_o, eta)
+    w = jnp.where((mat >= 0)[..., None], terms.ss_weight * (F / terms.ss_pdf)[..., None], 0.0)
+    return ShadingTerms(
+        terms.ms_hist,
+        mat,
+        terms.ss_sp_i + terms.ss_sp_o,
+        terms.ss_cos_phase,
+        jnp.moveaxis(w, -1, 0),
+        terms.profile,
+    )
+
+
+def shade_prepared(
+    terms: ShadingTerms,
+    media: Sequence[Medium],
+    r_nodes: Array,
+    *,
+    multiple: bool = True,
+    single: bool = True,
+    profile: str | None = None,
+) -> Float[Array, "P 3"]:
+    """Subsurface radiance of prepared terms (`prepare`) for `media` (coefficients in mm^-1;
+    their `eta` enters the diffusion profile, the one `prepare` was given the rest)."""
+    if profile is None:
+        profile = terms.profile
+    profiles.check_profile(profile)
+    # channel-major throughout (`(3, P)`): the forward-mode Jacobian of a fit then batches
+    # its tangents into matrix products instead of transposing the histogram (5x faster)
+    L = jnp.zeros(terms.ss_weight.shape[:2], terms.ss_weight.dtype)
+    r = r_nodes[:, None]
+    for m, med in enumerate(media):
+        if multiple:
+            rd = profiles.Rd(r, med.sigma_a, med.sigmap_s, med.eta, profile)  # (B, 3)
+            L = L + jnp.einsum("cpb,cb->cp", terms.ms_hist[m], rd.T)
+        if single and terms.ss_length.shape[1] > 0:
+            coef = [jnp.broadcast_to(x, (3,)) for x in (med.sigma_s, med.sigma_t, med.g)]
+            rows = []
+            for c in range(3):
+                k = dipole.single_scatter_kernel(
+                    terms.ss_length, terms.ss_cos_phase, coef[0][c], coef[1][c], coef[2][c]
+                )
+                f = terms.ss_weight[c] * k  # zero weight where no material
+                if len(media) > 1:
+                    f = jnp.where(terms.ss_mat == m, f, 0.0)
+                rows.append(jnp.sum(f, axis=1))
+            L = L + jnp.stack(rows)
+    return L.T
+
+
 def shade_sss(
     terms: Transport | SSSBlock,
     media: Sequence[Medium],
@@ -50,31 +155,8 @@ def shade_sss(
 
     `profile` (one of `sssjax.profiles.PROFILES`) defaults to `terms.profile`, the scene's
     `[sss] profile` that `trace` recorded (an `SSSBlock` from `Transport.sss_terms` keeps it)."""
-    if profile is None:
-        profile = terms.profile
-    profiles.check_profile(profile)
-    L = jnp.zeros(terms.ss_weight.shape[:1] + (3,), terms.ss_weight.dtype)
-    r = r_nodes[:, None]
-    for m, med in enumerate(media):
-        if multiple:
-            rd = profiles.Rd(r, med.sigma_a, med.sigmap_s, med.eta, profile)  # (B, 3)
-            L = L + jnp.einsum("cpb,bc->pc", terms.ms_hist[m], rd)
-        if single and terms.ss_sp_o.shape[1] > 0:
-            f = dipole.single_scatter_integrand(
-                terms.ss_sp_o[..., None],
-                terms.ss_sp_i[..., None],
-                terms.ss_cos_i[..., None],
-                terms.ss_cos_o[..., None],
-                terms.ss_cos_phase[..., None],
-                med.sigma_s,
-                med.sigma_t,
-                med.g,
-                med.eta,
-            )
-            sel = (terms.ss_mat == m)[..., None]
-            contrib = jnp.where(sel, f * terms.ss_weight / terms.ss_pdf[..., None], 0.0)
-            L = L + jnp.sum(contrib, axis=1)
-    return L
+    prep = prepare(terms, [m.eta for m in media])
+    return shade_prepared(prep, media, r_nodes, multiple=multiple, single=single, profile=profile)
 
 
 def shade(

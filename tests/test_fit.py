@@ -9,6 +9,7 @@ import pytest
 
 import sssjax
 from sssjax.fit import FitError, fit
+from sssjax.scene import PointLight
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -44,24 +45,34 @@ def test_recovers_coefficients_from_x2_x05_start(preset):
 
 
 def test_solver_jacobian_matches_central_differences(x64):
-    """The residual Jacobian the solver uses (forward mode, through shade) against central
-    differences of the same shade in float64."""
-    from sssjax.shade import shade
+    """The residual Jacobian the solver builds its model from (forward mode through the
+    prepared terms the fit shades) against central differences of plain `shade` of the
+    whole transport, in float64."""
+    from sssjax.fit import _fit_args, _Layout, _residual_fn, _trace_data
+    from sssjax.render import as_key, renderer_for
+    from sssjax.shade import shade, shade_image
 
     scene = small("skin1").with_settings(width=12, height=12, spp=1, sss_cloud_size=256)
     tr = sssjax.trace(scene, 0)
-    m0 = scene.media()["marble"]
+    media = scene.media()
+    m0 = media["marble"]
+    target = np.asarray(shade_image(tr, media)) * 1.1
+    data = _trace_data([renderer_for(scene)], as_key(0, scene), target, None, False, media)
+    args, order = _fit_args([data], media, 0.1, jax.numpy.float64)
+    free = (("marble", "sigma_a"), ("marble", "sigma_s"))
+    p0 = jax.numpy.log(jax.numpy.concatenate([m0.sigma_a, m0.sigma_s]))
+    J = np.asarray(jax.jacfwd(_residual_fn(_Layout(free, order, False, 0)))(p0, args))
+    scale = args[4]
 
     def img(p):
         med = sssjax.Medium(jax.numpy.exp(p[:3]), jax.numpy.exp(p[3:]), m0.g, m0.eta)
-        return shade(tr, {"marble": med}).reshape(-1)
+        return np.asarray(shade(tr, {"marble": med}))[np.asarray(tr.t_rows)].reshape(-1)
 
-    p0 = jax.numpy.log(jax.numpy.concatenate([m0.sigma_a, m0.sigma_s]))
-    J = np.asarray(jax.jacfwd(img)(p0))
+    assert J.shape == (3 * len(tr.t_rows), 6)
     for i in range(6):
         e = np.zeros(6)
         e[i] = 1e-6
-        fd = (np.asarray(img(p0 + e)) - np.asarray(img(p0 - e))) / 2e-6
+        fd = (img(p0 + e) - img(p0 - e)) / 2e-6 / scale
         np.testing.assert_allclose(J[:, i], fd, rtol=1e-5, atol=1e-9 * np.abs(fd).max())
 
 
@@ -242,3 +253,62 @@ def test_refine_adds_the_trace_noise_to_the_error_bars(scene_and_target):
         assert ref.stderr[n] >= ref.trace_stderr[n] * (1 - 1e-9)
         assert ref.trace_stderr[n] > 0
     assert ref.steps > plain.steps  # three phases
+
+
+def two_lights(scene, factor=1.0):
+    """`scene` with a second light, a point lamp to the front right (intensity x factor)."""
+    lamp = PointLight(
+        position=np.array([40.0, 35.0, 30.0]), intensity=np.array([900.0, 800.0, 700.0]) * factor
+    )
+    return scene.replace(lights=(*scene.lights, lamp))
+
+
+def test_light_groups_add_up_to_the_scene(x64):
+    """The fit traces each free light alone (the others dark): by linearity in emission
+    their shadings must sum to the full scene's, sample for sample (same random numbers)."""
+    from sssjax.fit import _light_groups
+    from sssjax.shade import shade
+
+    scene = two_lights(small("marble").with_settings(width=16, height=16, sss_cloud_size=512))
+    media = scene.media()
+    full = np.asarray(shade(sssjax.trace(scene, 4), media))
+    groups = _light_groups(scene, [1])
+    assert len(groups) == 2  # the free lamp alone, and the area light
+    parts = [np.asarray(shade(sssjax.trace(g, 4), media)) for g in groups]
+    assert np.all(parts[0] >= 0) and parts[0].max() > 0.05 * full.max()  # the lamp matters
+    np.testing.assert_allclose(parts[0] + parts[1], full, rtol=1e-9, atol=1e-12 * full.max())
+
+
+def test_free_light_intensity_is_recovered_with_the_coefficients():
+    """A target whose lamp is 1.6x brighter than the scene says: the fit with `lights.1`
+    free finds 1.6 and the coefficients (same seed, so the minimum is exact)."""
+    scene = two_lights(small("marble"))
+    target = np.asarray(sssjax.render(two_lights(small("marble"), 1.6), 0))
+    true = scene.media()["marble"]
+    init = {"sigma_a": np.asarray(true.sigma_a) * 2, "sigma_s": np.asarray(true.sigma_s) / 2}
+    res = fit(scene, target, params=["sigma_a", "sigma_s", "lights.1"], init=init, seed=0)
+    assert res.converged, res.message
+    assert res.values["lights.1"] == pytest.approx(1.6, rel=1e-3)
+    assert 0 < res.stderr["lights.1"] < 0.01
+    got = np.array([res.values[f"marble.sigma_a.{c}"] for c in "RGB"])
+    np.testing.assert_allclose(got, true.sigma_a, rtol=0.01)
+    # with the lamp held at the scene's value the same target cannot be matched
+    held = fit(scene, target, init=init, seed=0)
+    assert held.loss_final > 100 * res.loss_final
+
+
+@pytest.mark.parametrize(
+    "kwargs,message",
+    [
+        (dict(params=["sigma_a", "lights.2"]), r"no such light \(the scene has 2"),
+        (dict(params=["sigma_a", "lights.x"]), "no such light"),
+        (dict(params=["sigma_a", "lights.0", "lights.1", "exposure"]), "only their product"),
+        (dict(params=["sigma_a", "lights.1"], init={"lights.1": -2.0}), "one finite factor > 0"),
+        (dict(params=["sigma_a", "lights.1"], init={"lights.1": [1, 2, 3]}), "one finite"),
+        (dict(params=["sigma_a"], init={"lights.1": 2.0}), "not free"),
+    ],
+)
+def test_bad_light_parameters(kwargs, message):
+    scene = two_lights(small("marble").with_settings(width=16, height=16))
+    with pytest.raises(FitError, match=message):
+        fit(scene, np.ones((16, 16, 3)), **kwargs)
