@@ -36,7 +36,8 @@ from .shade import ShadingTerms, prepare, shade_prepared
 
 __all__ = ["fit", "FitResult", "FitError", "PARAM_FIELDS"]
 
-PARAM_FIELDS = ("sigma_a", "sigma_s", "sigmap_s", "g")
+PARAM_FIELDS = ("sigma_a", "sigma_s", "sigmap_s", "g", "eta")
+ETA_RANGE = (1.0, 2.5)  # the refractive indices a fit of eta searches (exclusive of 1)
 _CH = "RGB"
 
 
@@ -69,6 +70,8 @@ class FitResult:
     history: list[dict[str, Any]]
     warnings: list[str]
     trace_stderr: dict[str, float] | None = None  # from `refine`: the trace-noise part
+    # with `eta` free: every refractive index tried, with the loss of the fit there
+    eta_search: list[dict[str, float]] | None = None
 
     @property
     def exposure(self) -> float:
@@ -110,14 +113,14 @@ class FitResult:
 
 def _resolve_params(
     scene: Scene, params: Sequence[str] | None
-) -> tuple[list[tuple[str, str]], bool, list[int]]:
-    """The free `(material, field)` pairs, whether the exposure is free, and the indices of
-    the lights whose intensity is free."""
+) -> tuple[list[tuple[str, str]], bool, list[int], str | None]:
+    """The free `(material, field)` pairs, whether the exposure is free, the indices of
+    the lights whose intensity is free, and the material whose `eta` is free (or None)."""
     tm = scene.translucent_materials
     if not tm:
         raise FitError("the scene has no translucent material to fit")
     if params is None:
-        return [(m, f) for m in tm for f in ("sigma_a", "sigma_s")], False, []
+        return [(m, f) for m in tm for f in ("sigma_a", "sigma_s")], False, [], None
     out = []
     exposure = "exposure" in params
     lights = []
@@ -157,6 +160,10 @@ def _resolve_params(
         fields = {f for m, f in out if m == mat}
         if {"sigma_s", "sigmap_s"} <= fields:
             raise FitError(f"{mat}: free either sigma_s or sigmap_s, not both")
+    eta_mats = sorted({m for m, f in out if f == "eta"})
+    if len(eta_mats) > 1:
+        raise FitError(f"params: free the eta of one material at a time, got {eta_mats}")
+    out = [(m, f) for m, f in out if f != "eta"]
     if not out:
         raise FitError(
             "params: free at least one coefficient (exposure or light intensities alone fit "
@@ -167,7 +174,7 @@ def _resolve_params(
             "params: the exposure and every light's intensity are free, but only their "
             "product is determined: fix the exposure or one light"
         )
-    return out, exposure, sorted(lights)
+    return out, exposure, sorted(lights), (eta_mats[0] if eta_mats else None)
 
 
 def _load_target(target, shape: tuple[int, int]) -> np.ndarray:
@@ -264,7 +271,7 @@ def fit(
     t_start = time.perf_counter()
     cam = scene.camera
     tgt = _load_target(target, (cam.height, cam.width))
-    free, exposure, lights = _resolve_params(scene, params)
+    free, exposure, lights, eta_mat = _resolve_params(scene, params)
     media0 = scene.media()
     init = dict(init or {})
     start = {}
@@ -292,6 +299,14 @@ def fit(
         if not (np.isfinite(v) and v > 0):
             raise FitError(f"initial lights.{i} must be one finite factor > 0, got {v}")
         light0.append(v)
+    if eta_mat is not None:
+        v = init.pop(f"{eta_mat}.eta", init.pop("eta", float(media0[eta_mat].eta)))
+        eta_init = float(np.asarray(v, dtype=np.float64)) if np.ndim(v) == 0 else np.nan
+        if not (ETA_RANGE[0] < eta_init < ETA_RANGE[1]):
+            raise FitError(
+                f"initial {eta_mat}.eta must be one number in ({ETA_RANGE[0]}, "
+                f"{ETA_RANGE[1]}), got {v}"
+            )
     if init:
         raise FitError(f"init names parameters that are not free: {sorted(init)}")
     if not (isinstance(traces, int) and traces >= 1):
@@ -319,8 +334,18 @@ def fit(
     # several independent traces average out the noise that one trace (its irradiance
     # cloud above all) shares across every pixel, which a single trace fits as signal
     keys = [key0 if k == 0 else jax.random.fold_in(key0, 1000 + k) for k in range(traces)]
-    data = [_trace_data(renderers, k, tgt, mask, progress, media0) for k in keys]
-    trace_time = time.perf_counter() - t0
+
+    def traced(keys, eta=None):
+        """The fit data of `keys` and the media, at the free material's `eta` if given
+        (it bends the rays: a re-trace, with the compiled tracer)."""
+        media = dict(media0)
+        etas = None
+        if eta is not None:
+            etas = {eta_mat: eta}
+            m = media0[eta_mat]
+            media[eta_mat] = Medium(m.sigma_a, m.sigma_s, m.g, eta)
+        return [_trace_data(renderers, k, tgt, mask, progress, media, etas) for k in keys], media
+
     names = [f"{m}.{f}.{_CH[c]}" for m, f in free for c in range(3)]
     names += [f"lights.{i}" for i in lights] + ["exposure"] * exposure
     # unconstrained coordinates: log of the coefficients, light factors and the exposure,
@@ -340,7 +365,6 @@ def fit(
         exposure=exposure,
         n_lights=len(lights),
         loss=loss,
-        media0=media0,
         solver=solver,
         max_steps=max_steps,
         rtol=rtol,
@@ -352,7 +376,16 @@ def fit(
         tanh_idx=tanh_idx,
         progress=progress,
     )
-    run = _solve(data, y0, **fn_kw)
+    eta_star, eta_search = None, None
+    y_start = y0
+    if eta_mat is not None:
+        eta_star, eta_search, y_start, eta_loss0, eta_bounds = _search_eta(
+            lambda eta: traced(keys, eta), y0, eta_init, eta_mat, fn_kw, progress
+        )
+    data, media_fit = traced(keys, eta_star)
+    fn_kw["media0"] = media_fit
+    trace_time = time.perf_counter() - t0
+    run = _solve(data, y_start, **fn_kw)
     if weighting == "relative":
         # weights from the target's own noisy values favour pixels whose noise happens to be
         # low and so bias the fit (by about the pixels' relative variance); refit with
@@ -361,9 +394,7 @@ def fit(
     trace_sd = None
     if refine:
         t0 = time.perf_counter()
-        fresh = _trace_data(
-            renderers, jax.random.fold_in(key0, 99_991), tgt, mask, progress, media0
-        )
+        fresh = traced([jax.random.fold_in(key0, 99_991)], eta_star)[0][0]
         trace_time += time.perf_counter() - t0
         if progress:
             print("refine: fit a fresh trace from the solution", file=sys.stderr, flush=True)
@@ -372,6 +403,7 @@ def fit(
         if progress:
             print("refine: joint fit of both traces", file=sys.stderr, flush=True)
         joint = _solve(data + [fresh], 0.5 * (run["y"] + other["y"]), weights_at=w_at, **fn_kw)
+        keys = keys + [jax.random.fold_in(key0, 99_991)]
         # two single-trace solutions differ by trace noise alone (same target): their
         # half-difference estimates the trace-noise error of the joint (mean) solution
         trace_sd = 0.5 * np.abs(np.asarray(run["y"] - other["y"], dtype=np.float64))
@@ -383,7 +415,20 @@ def fit(
     order = run["order"]
     J, r = _jac_res(run["residuals"], y, run["args"])
     J, r = np.asarray(J, dtype=np.float64), np.asarray(r, dtype=np.float64)
-    dof = max(r.size - y.size, 1)
+    if eta_mat is not None:
+        # the eta column by central differences of re-traced residuals (same keys, so the
+        # same random numbers), the other parameters held at the solution
+        h = 2e-3
+        cols = []
+        for e in (eta_star + h, eta_star - h):
+            d_e, m_e = traced(keys, e)
+            a_e, _ = _fit_args(d_e, m_e, loss_scale, run["args"][1].dtype)
+            a_e = (*a_e[:7], run["args"][7])  # the weights of the final fit
+            cols.append(np.asarray(run["residuals"](y, a_e), dtype=np.float64))
+        J = np.concatenate([J, ((cols[0] - cols[1]) / (2 * h))[:, None]], axis=1)
+        names = names + [f"{eta_mat}.eta"]
+        tanh_idx = np.append(tanh_idx, False)
+    dof = max(r.size - J.shape[1], 1)
     s2 = float(r @ r) / dof
     JtJ = J.T @ J
     warnings = []
@@ -404,16 +449,20 @@ def fit(
                 "parameters are not identifiable from this target; their errors are unreliable"
             )
     except np.linalg.LinAlgError:
-        cov_log = np.full((y.size, y.size), np.inf)
+        cov_log = np.full((J.shape[1], J.shape[1]), np.inf)
         warnings.append("J^T J is singular: the parameters are not identifiable from this target")
-    vals = _values(y, tanh_idx)
+    vals = _values(y, tanh_idx[: y.size])
     # d value / d y: value for log coordinates, 1 - g^2 for atanh
-    dval = np.where(tanh_idx, 1.0 - vals**2, vals)
+    dval = np.where(tanh_idx[: y.size], 1.0 - vals**2, vals)
+    if eta_mat is not None:  # eta is its own coordinate
+        vals, dval = np.append(vals, eta_star), np.append(dval, 1.0)
     sd_log = np.sqrt(np.clip(np.diag(cov_log), 0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov_log / np.outer(sd_log, sd_log)
     trace_stderr = None
     if trace_sd is not None:
+        if eta_mat is not None:
+            trace_sd = np.append(trace_sd, 0.0)  # refine re-fits the others at eta*
         trace_stderr = dict(zip(names, (dval * trace_sd).tolist(), strict=True))
         sd_log = np.sqrt(sd_log**2 + trace_sd**2)
         ratio = np.max(trace_sd / np.maximum(np.sqrt(np.diag(cov_log)), 1e-300))
@@ -446,9 +495,18 @@ def fit(
             "on the shape of the image alone (see its error bar)"
         )
     converged, status, message = run["converged"], run["status"], run["message"]
+    steps = run["steps"]
+    loss_initial = float(_loss(run["residuals"], y0, run["args"]))
+    if eta_mat is not None:
+        steps += sum(t["steps"] for t in eta_search)
+        loss_initial = eta_loss0  # at the initial eta, not the fitted one
+        if min(abs(eta_star - b) for b in eta_bounds) < 1e-3:
+            warnings.append(
+                f"{eta_mat}.eta = {eta_star:.4f} is at the edge of the searched range "
+                f"{eta_bounds[0]:.3f}..{eta_bounds[1]:.3f}: start nearer, or fix eta"
+            )
     if not converged:
-        y_start = np.asarray(y0, dtype=np.float64)
-        moved = np.abs(np.asarray(y, dtype=np.float64) - y_start) > np.log(10.0)
+        moved = np.abs(np.asarray(y - y0, dtype=np.float64)) > np.log(10.0)
         far = [n for n, m, t in zip(names, moved, tanh_idx, strict=True) if m and not t]
         if far:
             warnings.append(
@@ -465,11 +523,17 @@ def fit(
         names=names,
         values=dict(zip(names, vals.tolist(), strict=True)),
         stderr=dict(zip(names, stderr.tolist(), strict=True)),
-        initial=dict(zip(names, _values(y0, tanh_idx).tolist(), strict=True)),
+        initial=dict(
+            zip(
+                names,
+                _values(y0, tanh_idx[: y0.size]).tolist() + ([eta_init] if eta_mat else []),
+                strict=True,
+            )
+        ),
         correlation=np.nan_to_num(corr).tolist(),
         media=fitted,
-        steps=run["steps"],
-        loss_initial=float(_loss(run["residuals"], y0, run["args"])),
+        steps=steps,
+        loss_initial=loss_initial,
         loss_final=float(_loss(run["residuals"], y, run["args"])),
         status=status,
         message=message,
@@ -479,7 +543,47 @@ def fit(
         history=run["history"],
         warnings=warnings,
         trace_stderr=trace_stderr,
+        eta_search=eta_search,
     )
+
+
+def _search_eta(traced, y0, eta_init, eta_mat, fn_kw, progress):
+    """Minimise the profile loss `min_theta loss(theta; eta)` over the free material's
+    refractive index by bounded Brent search. `eta` bends rays, so each value tried is a
+    re-trace (same keys: the same random numbers, so the loss is smooth in eta) and a fit of
+    the other parameters from the best so far, starting with `eta_init` itself. Weights stay
+    the target's throughout, so the losses compare. The search spans `eta_init +- 0.3`
+    (within `ETA_RANGE`). **Returns:** `(eta*, [{eta, loss, steps}], y at eta*, the loss at
+    y0 and eta_init, the bounds)`."""
+    from scipy.optimize import minimize_scalar
+
+    kw = dict(fn_kw)
+    best = {"loss": np.inf, "y": y0}
+    tried = []
+    first = {}
+
+    def profile_loss(eta):
+        data, media = traced(float(eta))
+        run = _solve(data, best["y"], media0=media, **dict(kw, progress=False))
+        first.setdefault("loss0", run["loss0"])
+        loss_val = float(_loss(run["residuals"], run["y"], run["args"]))
+        tried.append({"eta": float(eta), "loss": loss_val, "steps": run["steps"]})
+        if progress:
+            print(
+                f"eta search: {eta_mat}.eta = {eta:.5f}  loss {loss_val:.6g}  "
+                f"({run['steps']} steps)",
+                file=sys.stderr,
+                flush=True,
+            )
+        if loss_val < best["loss"]:
+            best.update(loss=loss_val, y=run["y"], eta=float(eta))
+        return loss_val
+
+    lo = max(ETA_RANGE[0] + 1e-3, eta_init - 0.3)
+    hi = min(ETA_RANGE[1], eta_init + 0.3)
+    profile_loss(eta_init)  # the loss at the start, and a warm start for the search
+    minimize_scalar(profile_loss, bounds=(lo, hi), method="bounded", options={"xatol": 2e-4})
+    return best["eta"], tried, best["y"], first["loss0"], (lo, hi)
 
 
 _EMISSION = {"AreaLight": "radiance", "PointLight": "intensity", "BeamLight": "power"}
@@ -505,11 +609,11 @@ def _light_groups(scene: Scene, free_lights: Sequence[int]) -> list[Scene]:
     return [only({i}) for i in free_lights] + ([only(set(rest))] if rest else [])
 
 
-def _trace_data(renderers, key, tgt, mask, progress, media0):
+def _trace_data(renderers, key, tgt, mask, progress, media0, etas=None):
     """Trace once per light group and keep what the fit needs: the subsurface terms of the
     fitted pixels, their target values and their medium-independent radiance (`base`),
     per group."""
-    transports = [r.trace(key, progress=progress) for r in renderers]
+    transports = [r.trace(key, progress, etas) for r in renderers]
     transport = transports[0]
     pix = np.asarray(transport.translucent_pixels())
     rows = np.asarray(transport.t_rows)

@@ -79,24 +79,31 @@ class Renderer:
         self.n_blocks = -(-self.n_pixels // self.block)
         tr = self.tracer
 
-        def chain(pix, keys):
+        def chain(pix, keys, eta):
             # one tile per device, each run as its own program (not vmapped: a vmapped
             # `switch` would run every branch, and the chain skips the bounces of dead rays)
-            base, slots = tr._chain_block(pix[0], keys[0])
+            base, slots = tr.with_eta(tr._chain_block, pix[0], keys[0], eta=eta)
             return base[None], jax.tree_util.tree_map(lambda a: a[None], slots)
 
         spec = PartitionSpec("tiles")
         self._chain = jax.jit(
             jax.shard_map(
-                chain, mesh=self.mesh, in_specs=(spec, spec), out_specs=spec, check_vma=False
+                chain,
+                mesh=self.mesh,
+                in_specs=(spec, spec, PartitionSpec()),
+                out_specs=spec,
+                check_vma=False,
             )
         )
 
-        def sss(slots, keys, cloud):
-            return jax.vmap(lambda s, k: tr._sss_block(s, k, cloud))(slots, keys)
+        def sss(slots, keys, cloud, eta):
+            def one(s, k):
+                return tr.with_eta(tr._sss_block, s, k, cloud, eta=eta)
 
-        def sss_shaded(slots, keys, cloud, media):
-            blocks = sss(slots, keys, cloud)
+            return jax.vmap(one)(slots, keys)
+
+        def sss_shaded(slots, keys, cloud, media, eta):
+            blocks = sss(slots, keys, cloud, eta)
             r = jnp.asarray(tr.r_nodes, dtype=float)
             return jax.vmap(lambda b: shade_sss(b, media, r, profile=scene.sss.profile))(blocks)
 
@@ -113,11 +120,14 @@ class Renderer:
     def _keys(self, key, idx):
         return self._put(jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.asarray(idx)))
 
-    def cloud(self, key):
-        return self.tracer.cloud(jax.random.fold_in(key, 0x5C0FFEE))
+    def cloud(self, key, eta=None):
+        return self.tracer.cloud(jax.random.fold_in(key, 0x5C0FFEE), eta)
 
-    def chunks(self, key, progress_label: str | None):
-        """Run phase 1 over chunks of tiles. Yields `(pixels, base, slots)` per chunk (host)."""
+    def chunks(self, key, progress_label: str | None, eta=None):
+        """Run phase 1 over chunks of tiles. Yields `(pixels, base, slots)` per chunk (host).
+
+        `eta`: per-shape refractive index (`SceneTracer.eta_for`), default the scene's."""
+        eta = jnp.asarray(self.tracer.eta_for() if eta is None else eta, dtype=float)
         k_tiles = jax.random.fold_in(key, 1)
         bar = _Progress(self.n_blocks, progress_label or "", progress_label is not None)
         step = max(CHUNK_TILES, self.D) // self.D * self.D
@@ -128,7 +138,9 @@ class Renderer:
                 starts = np.minimum(idx, self.n_blocks - 1) * self.block
                 pix = starts[:, None] + np.arange(self.block)[None, :]
                 pix = np.minimum(pix, self.n_pixels - 1).astype(np.int32)
-                base, slots = self._chain(self._put(jnp.asarray(pix)), self._keys(k_tiles, idx))
+                base, slots = self._chain(
+                    self._put(jnp.asarray(pix)), self._keys(k_tiles, idx), eta
+                )
                 n = min(self.D, self.n_blocks - g0)
                 pix_l.append(pix[:n])
                 base_l.append(np.asarray(base)[:n])
@@ -168,31 +180,38 @@ class Renderer:
         media = tuple(media)
         img = np.zeros((self.n_pixels, 3), jnp.result_type(float))  # float64 under x64
         sss_on = self.tracer.sss_on
-        cloud = self.cloud(key) if sss_on else None
+        # the media's eta bends the rays as well as entering the profile
+        names = self.tracer.tmat_names
+        etas = {n: m.eta for n, m in zip(names, media, strict=True)}
+        eta = jnp.asarray(self.tracer.eta_for(etas), dtype=float)
+        cloud = self.cloud(key, eta) if sss_on else None
         counter = [0]
-        for pix, base, slots in self.chunks(key, "rendering" if progress else None):
+        for pix, base, slots in self.chunks(key, "rendering" if progress else None, eta):
             img[pix] = base
             if not sss_on:
                 continue
             for rows, valid, blk, keys in self.sss_blocks(key, slots, counter):
-                L = np.asarray(self._sss_shaded(blk, keys, cloud, media))
+                L = np.asarray(self._sss_shaded(blk, keys, cloud, media, eta))
                 img[pix[rows[valid]]] += L[valid]
         cam = self.scene.camera
         return img.reshape(cam.height, cam.width, 3)
 
-    def trace(self, key, progress: bool) -> Transport:
+    def trace(self, key, progress: bool, etas: dict | None = None) -> Transport:
+        """The transport of the whole image; `etas` overrides translucent materials'
+        refractive index by name (geometry: it bends rays), without recompiling."""
         key = as_key(key, self.scene)
         tr = self.tracer
-        cloud = self.cloud(key) if tr.sss_on else None
+        eta = jnp.asarray(tr.eta_for(etas), dtype=float)
+        cloud = self.cloud(key, eta) if tr.sss_on else None
         counter = [0]
         pix_all, base_all, rows_all, blocks = [], [], [], []
         offset = 0
-        for pix, base, slots in self.chunks(key, "tracing" if progress else None):
+        for pix, base, slots in self.chunks(key, "tracing" if progress else None, eta):
             pix_all.append(pix)
             base_all.append(base)
             if tr.sss_on:
                 for rows, valid, blk, keys in self.sss_blocks(key, slots, counter):
-                    out = jax.tree_util.tree_map(np.asarray, self._sss(blk, keys, cloud))
+                    out = jax.tree_util.tree_map(np.asarray, self._sss(blk, keys, cloud, eta))
                     for i in range(rows.shape[0]):
                         v = valid[i]
                         if not v.any():
@@ -294,6 +313,12 @@ def render(
     ordered = tuple(m[n] for n in r.tracer.tmat_names)
     leaves = jax.tree_util.tree_leaves(ordered)
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
-        # under jax.grad / jacfwd / vmap: the differentiable path, shade(trace(scene))
-        return shade_image(r.trace(key, progress), ordered)
+        # under jax.grad / jacfwd / vmap: the differentiable path, shade(trace(scene)); the
+        # media's eta bends the rays of the trace too, unless it is being differentiated
+        etas = {
+            n: float(md.eta)
+            for n, md in zip(r.tracer.tmat_names, ordered, strict=True)
+            if not isinstance(md.eta, jax.core.Tracer)
+        }
+        return shade_image(r.trace(key, progress, etas), ordered)
     return r.render(key, ordered, progress)

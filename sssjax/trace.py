@@ -18,11 +18,17 @@ differentiable `shade` pass needs:
   `shade` re-weights by `integrand / pdf` for any coefficients; light connections through the
   boundary with shadow rays, the refracted-distance approximation inputs and phase cosines.
 
-Lengths in mm. `eta` of each medium is treated as geometry (it bends rays) and is fixed here.
+Lengths in mm. `eta` of each medium is geometry (it bends rays): it is fixed within a trace,
+but it is an argument of the compiled functions (`SceneTracer.with_eta`), so a fit of `eta`
+re-traces at each value tried without recompiling.
+
+Bounces past the camera's run only on the rays still alive (packed into a quarter of the
+block when they fit, skipped when none is left): after the first hit most rays have ended.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -204,7 +210,8 @@ class SceneTracer:
             m = mats[scene.shapes[i].material].medium
             eta[i] = float(m.eta)
             lam[j] = float(np.mean(np.asarray(m.sigma_t)))
-        self.shape_eta = eta
+        self.eta0 = eta  # the scene's refractive index per shape (1 where not translucent)
+        self._eta = None  # the index being traced: set only while a jitted method traces
         self.tobj_area = [float(self.shapes[i].area()) for i in self.tobj_shape]
         self.tobj_lambda = lam
         self.spp = scene.render.spp
@@ -235,9 +242,36 @@ class SceneTracer:
         # a `sssjax.raytree` recorder: set only on a tracer whose methods run eagerly (never
         # under jit); every hook below is skipped while it is None
         self._rec = None
-        self._cloud_fn = jax.jit(self._cloud)
-        self._chain_fn = jax.jit(self._chain_block)
-        self._sss_fn = jax.jit(self._sss_block)
+        self._cloud_fn = jax.jit(functools.partial(self.with_eta, self._cloud))
+        self._chain_fn = jax.jit(functools.partial(self.with_eta, self._chain_block))
+        self._sss_fn = jax.jit(functools.partial(self.with_eta, self._sss_block))
+
+    # -- the refractive index: geometry, but an argument of the compiled functions ----------
+    @property
+    def shape_eta(self):
+        """Refractive index per shape: the scene's, or the one being traced (`with_eta`)."""
+        return self.eta0 if self._eta is None else self._eta
+
+    def eta_for(self, etas: dict | None = None) -> np.ndarray:
+        """The per-shape index array with translucent materials' `eta` from `etas` (by
+        material name; the scene's for the others)."""
+        eta = np.array(self.eta0, dtype=np.float64)
+        for i in self.tobj_shape:
+            name = self.scene.shapes[i].material
+            if etas and name in etas:
+                eta[i] = float(etas[name])
+        return eta
+
+    def with_eta(self, fn, *args, eta=None):
+        """Run `fn(*args)` with the per-shape index `eta` (default the scene's). The
+        compiled methods take it as an argument, so a fit of `eta` re-traces without
+        recompiling."""
+        prev = self._eta
+        self._eta = None if eta is None else jnp.asarray(eta, dtype=float)
+        try:
+            return fn(*args)
+        finally:
+            self._eta = prev
 
     # -- geometric queries ---------------------------------------------------------------
     def intersect(self, o, d, t_max=jnp.inf):
@@ -274,9 +308,10 @@ class SceneTracer:
         return t.reshape(shp), n.reshape(*shp, 3)
 
     # -- the irradiance cloud ------------------------------------------------------------
-    def cloud(self, key: PRNGKeyArray) -> Cloud:
-        """Sample the irradiance cloud of every translucent object."""
-        return self._cloud_fn(key)
+    def cloud(self, key: PRNGKeyArray, eta=None) -> Cloud:
+        """Sample the irradiance cloud of every translucent object (`eta`: per-shape
+        refractive index, default the scene's)."""
+        return self._cloud_fn(key, eta=self.eta_for() if eta is None else eta)
 
     def _cloud(self, key):
         n, nl = self.cloud_n, self.scene.render.light_samples
@@ -348,7 +383,7 @@ class SceneTracer:
         **Returns:** `(base (P, 3), slots)`: `slots` maps `SLOT_FIELDS` to `(P, spp, ...)`
         arrays describing each sample's first translucent hit (`have` False where none).
         """
-        return self._chain_fn(pixels, key)
+        return self._chain_fn(pixels, key, eta=self.eta0)
 
     def _chain_block(self, pixels, key):
         sc = self.scene
@@ -501,7 +536,7 @@ class SceneTracer:
 
     def sss_block(self, slots: dict, key: PRNGKeyArray, cloud: Cloud) -> SSSBlock:
         """Subsurface terms for a block of pixels given their `slots` (`(P, spp, ...)`)."""
-        return self._sss_fn(slots, key, cloud)
+        return self._sss_fn(slots, key, cloud, eta=self.eta0)
 
     def _sss_block(self, slots, key, cloud):
         P, S = slots["have"].shape

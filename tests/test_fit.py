@@ -312,3 +312,64 @@ def test_bad_light_parameters(kwargs, message):
     scene = two_lights(small("marble").with_settings(width=16, height=16))
     with pytest.raises(FitError, match=message):
         fit(scene, np.ones((16, 16, 3)), **kwargs)
+
+
+def with_eta(scene, eta):
+    mats = dict(scene.materials)
+    m = mats["marble"]
+    med = m.medium
+    mats["marble"] = type(m)(
+        m.name, m.type, medium=sssjax.Medium(med.sigma_a, med.sigma_s, med.g, eta)
+    )
+    return scene.replace(materials=mats)
+
+
+def test_trace_at_another_eta_equals_the_scene_with_that_eta():
+    """`eta` is an argument of the compiled tracer (a fit of eta re-traces without
+    recompiling): tracing at eta = 1.45 must give the transport of a scene built with 1.45."""
+    from sssjax.render import renderer_for
+
+    scene = small("marble").with_settings(width=16, height=16, sss_cloud_size=512)
+    other = with_eta(scene, 1.45)
+    a = renderer_for(scene).trace(0, False, {"marble": 1.45})
+    b = sssjax.trace(other, 0)
+    c = sssjax.trace(scene, 0)
+    for f in ("base", "ms_hist", "ss_weight", "ss_cos_i", "ss_sp_i"):
+        np.testing.assert_allclose(getattr(a, f), getattr(b, f), rtol=1e-5, atol=1e-7)
+    assert (
+        np.abs(np.asarray(a.ms_hist) - np.asarray(c.ms_hist)).max() > 1e-3 * np.abs(c.ms_hist).max()
+    )
+
+
+@pytest.mark.slow
+def test_free_eta_is_recovered_with_the_coefficients():
+    """A target rendered with eta = 1.45 fitted from eta = 1.3 and coefficients x2 / x0.5
+    (same seed): the Brent search over re-traces finds 1.45, and the coefficients."""
+    scene = small("marble").with_settings(width=24, height=24)
+    target = np.asarray(sssjax.render(with_eta(scene, 1.45), 0))
+    true = scene.media()["marble"]
+    init = {"sigma_a": np.asarray(true.sigma_a) * 2, "sigma_s": np.asarray(true.sigma_s) / 2}
+    res = fit(scene, target, params=["sigma_a", "sigma_s", "eta"], init=init, seed=0)
+    assert res.converged, res.message
+    assert res.values["marble.eta"] == pytest.approx(1.45, abs=1e-3)
+    assert res.initial["marble.eta"] == pytest.approx(1.3)
+    assert 0 < res.stderr["marble.eta"] < 0.01
+    got = np.array([res.values[f"marble.sigma_a.{c}"] for c in "RGB"])
+    np.testing.assert_allclose(got, true.sigma_a, rtol=0.01)
+    assert res.media["marble"].eta == pytest.approx(res.values["marble.eta"])
+    assert len(res.eta_search) >= 4 and res.eta_search[0]["eta"] == pytest.approx(1.3)
+    assert res.loss_initial > 1e3 * res.loss_final
+    json.loads(res.to_json())  # eta and the search serialise
+
+
+@pytest.mark.parametrize(
+    "kwargs,message",
+    [
+        (dict(params=["sigma_a", "eta"], init={"eta": 3.0}), r"eta must be one number in"),
+        (dict(params=["sigma_a", "eta"], init={"eta": [1.3, 1.4]}), "one number"),
+    ],
+)
+def test_bad_eta_parameters(kwargs, message):
+    scene = small("marble").with_settings(width=16, height=16)
+    with pytest.raises(FitError, match=message):
+        fit(scene, np.ones((16, 16, 3)), **kwargs)
