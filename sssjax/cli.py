@@ -179,11 +179,11 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         target = read_image(job.target) if job.target.exists() else job.target
     res = fit(scene, target, **job.fit_kwargs(), progress=True)
     out.mkdir(parents=True, exist_ok=True)
-    fitted = render(scene, job.seed, media=res.media) * res.exposure
+    fitted = render(res.apply(scene), job.seed) * res.exposure
     write_image(out / "fit.exr", fitted)
     write_image(out / "fit.png", fitted)
     _, psnr, ssim = fit_triptych(np.asarray(target), fitted, out / "triptych.png")
-    convergence_plot(res.history, res.names, out / "convergence.png")
+    convergence_plot(res.history, res.names, out / "convergence.png", res.eta_search)
     res.to_json(out / "result.json")
     print(res.summary())
     print(

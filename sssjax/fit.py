@@ -78,6 +78,23 @@ class FitResult:
         """The fitted exposure factor (1 when it was not free)."""
         return float(self.values.get("exposure", 1.0))
 
+    def apply(self, scene: Scene) -> Scene:
+        """`scene` with what the fit found: the fitted media (their `eta` too) and each free
+        light's emission scaled by its factor. `render(result.apply(scene)) * result.exposure`
+        is the fitted image."""
+        mats = dict(scene.materials)
+        for name, med in self.media.items():
+            mats[name] = dataclasses.replace(mats[name], medium=med)
+        lights = list(scene.lights)
+        for n, v in self.values.items():
+            if n.startswith("lights."):
+                lt = lights[int(n.removeprefix("lights."))]
+                f = _EMISSION[type(lt).__name__]
+                lights[int(n.removeprefix("lights."))] = dataclasses.replace(
+                    lt, **{f: np.asarray(getattr(lt, f)) * v}
+                )
+        return scene.replace(materials=mats, lights=tuple(lights))
+
     def to_json(self, path: str | Path | None = None) -> str:
         """The result as JSON (media as coefficient lists); written to `path` if given."""
         d = dataclasses.asdict(self)
@@ -324,13 +341,14 @@ def fit(
 
     # one trace per free light (only it emitting) and one for the other lights: the image is
     # linear in each light's emission, so the fit scales and sums their shadings
-    renderers = [renderer_for(sc) for sc in _light_groups(scene, lights)]
+    renderer = renderer_for(scene)
+    gains = _light_groups(len(scene.lights), lights)
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != (cam.height, cam.width):
             raise FitError(f"mask has shape {mask.shape}, expected {(cam.height, cam.width)}")
     key0 = as_key(seed, scene)
-    t0 = time.perf_counter()
+    trace_clock = [0.0]  # seconds spent tracing
     # several independent traces average out the noise that one trace (its irradiance
     # cloud above all) shares across every pixel, which a single trace fits as signal
     keys = [key0 if k == 0 else jax.random.fold_in(key0, 1000 + k) for k in range(traces)]
@@ -338,13 +356,16 @@ def fit(
     def traced(keys, eta=None):
         """The fit data of `keys` and the media, at the free material's `eta` if given
         (it bends the rays: a re-trace, with the compiled tracer)."""
+        t = time.perf_counter()
         media = dict(media0)
         etas = None
         if eta is not None:
             etas = {eta_mat: eta}
             m = media0[eta_mat]
             media[eta_mat] = Medium(m.sigma_a, m.sigma_s, m.g, eta)
-        return [_trace_data(renderers, k, tgt, mask, progress, media, etas) for k in keys], media
+        data = [_trace_data(renderer, gains, k, tgt, mask, progress, media, etas) for k in keys]
+        trace_clock[0] += time.perf_counter() - t
+        return data, media
 
     names = [f"{m}.{f}.{_CH[c]}" for m, f in free for c in range(3)]
     names += [f"lights.{i}" for i in lights] + ["exposure"] * exposure
@@ -379,12 +400,12 @@ def fit(
     eta_star, eta_search = None, None
     y_start = y0
     if eta_mat is not None:
-        eta_star, eta_search, y_start, eta_loss0, eta_bounds = _search_eta(
+        eta_star, eta_search, y_start, eta_loss0, eta_bounds, (data, media_fit) = _search_eta(
             lambda eta: traced(keys, eta), y0, eta_init, eta_mat, fn_kw, progress
         )
-    data, media_fit = traced(keys, eta_star)
+    else:
+        data, media_fit = traced(keys)
     fn_kw["media0"] = media_fit
-    trace_time = time.perf_counter() - t0
     run = _solve(data, y_start, **fn_kw)
     if weighting == "relative":
         # weights from the target's own noisy values favour pixels whose noise happens to be
@@ -393,9 +414,7 @@ def fit(
         run = _solve(data, run["y"], weights_at=run["y"], **fn_kw)
     trace_sd = None
     if refine:
-        t0 = time.perf_counter()
         fresh = traced([jax.random.fold_in(key0, 99_991)], eta_star)[0][0]
-        trace_time += time.perf_counter() - t0
         if progress:
             print("refine: fit a fresh trace from the solution", file=sys.stderr, flush=True)
         w_at = run["y"] if weighting == "relative" else None
@@ -539,7 +558,7 @@ def fit(
         message=message,
         converged=bool(converged),
         wall_time_s=time.perf_counter() - t_start,
-        trace_time_s=trace_time,
+        trace_time_s=trace_clock[0],
         history=run["history"],
         warnings=warnings,
         trace_stderr=trace_stderr,
@@ -554,7 +573,7 @@ def _search_eta(traced, y0, eta_init, eta_mat, fn_kw, progress):
     the other parameters from the best so far, starting with `eta_init` itself. Weights stay
     the target's throughout, so the losses compare. The search spans `eta_init +- 0.3`
     (within `ETA_RANGE`). **Returns:** `(eta*, [{eta, loss, steps}], y at eta*, the loss at
-    y0 and eta_init, the bounds)`."""
+    y0 and eta_init, the bounds, the best value's `traced` output)`."""
     from scipy.optimize import minimize_scalar
 
     kw = dict(fn_kw)
@@ -576,44 +595,37 @@ def _search_eta(traced, y0, eta_init, eta_mat, fn_kw, progress):
                 flush=True,
             )
         if loss_val < best["loss"]:
-            best.update(loss=loss_val, y=run["y"], eta=float(eta))
+            best.update(loss=loss_val, y=run["y"], eta=float(eta), traced=(data, media))
         return loss_val
 
     lo = max(ETA_RANGE[0] + 1e-3, eta_init - 0.3)
     hi = min(ETA_RANGE[1], eta_init + 0.3)
     profile_loss(eta_init)  # the loss at the start, and a warm start for the search
     minimize_scalar(profile_loss, bounds=(lo, hi), method="bounded", options={"xatol": 2e-4})
-    return best["eta"], tried, best["y"], first["loss0"], (lo, hi)
+    return best["eta"], tried, best["y"], first["loss0"], (lo, hi), best["traced"]
 
 
 _EMISSION = {"AreaLight": "radiance", "PointLight": "intensity", "BeamLight": "power"}
 
 
-def _light_groups(scene: Scene, free_lights: Sequence[int]) -> list[Scene]:
-    """Scenes whose transports add up to the scene's: one per free light (only that light
-    emitting), then one with the other lights (absent when every light is free). All keep
-    every light, dark or not, so rays, samples and random numbers are those of the scene and
+def _light_groups(n_lights: int, free_lights: Sequence[int]) -> list[np.ndarray | None]:
+    """Per-light emission factors of traces whose transports add up to the scene's: one per
+    free light (only that light emitting), then one with the other lights (absent when
+    every light is free); `[None]` (the scene as it is) when no light is free. Every light
+    stays in the scene, dark or not, so rays, samples and random numbers are the scene's and
     each trace is exactly its lights' share."""
     if not free_lights:
-        return [scene]
-
-    def dark(lt):
-        f = _EMISSION[type(lt).__name__]
-        return dataclasses.replace(lt, **{f: np.zeros_like(getattr(lt, f))})
-
-    def only(keep):
-        lights = tuple(lt if i in keep else dark(lt) for i, lt in enumerate(scene.lights))
-        return scene.replace(lights=lights)
-
-    rest = [i for i in range(len(scene.lights)) if i not in free_lights]
-    return [only({i}) for i in free_lights] + ([only(set(rest))] if rest else [])
+        return [None]
+    rest = [i for i in range(n_lights) if i not in free_lights]
+    groups = [[i] for i in free_lights] + ([rest] if rest else [])
+    return [np.isin(np.arange(n_lights), g).astype(np.float64) for g in groups]
 
 
-def _trace_data(renderers, key, tgt, mask, progress, media0, etas=None):
-    """Trace once per light group and keep what the fit needs: the subsurface terms of the
-    fitted pixels, their target values and their medium-independent radiance (`base`),
-    per group."""
-    transports = [r.trace(key, progress, etas) for r in renderers]
+def _trace_data(renderer, gains, key, tgt, mask, progress, media0, etas=None):
+    """Trace once per light group (`gains`, from `_light_groups`) and keep what the fit
+    needs: the subsurface terms of the fitted pixels, their target values and their
+    medium-independent radiance (`base`), per group."""
+    transports = [renderer.trace(key, progress, etas, g) for g in gains]
     transport = transports[0]
     pix = np.asarray(transport.translucent_pixels())
     rows = np.asarray(transport.t_rows)

@@ -63,6 +63,24 @@ class LightArrays(eqx.Module):
             beam_power=stack(beam, "power"),
         )
 
+    def scaled(self, gain: Array, kinds: tuple[str, ...]) -> LightArrays:
+        """The lights with each one's emission times `gain` (one factor per light, in the
+        scene's order; `kinds` the scene's light types, `"area"`/`"point"`/`"beam"`)."""
+        gain = jnp.asarray(gain, dtype=float)
+
+        def of(kind):
+            return gain[np.array([i for i, k in enumerate(kinds) if k == kind], dtype=int)]
+
+        return eqx.tree_at(
+            lambda la: (la.radiance, la.intensity, la.beam_power),
+            self,
+            (
+                self.radiance * of("area")[:, None],
+                self.intensity * of("point")[:, None],
+                self.beam_power * of("beam")[:, None],
+            ),
+        )
+
     @property
     def n_area(self) -> int:
         return self.corner.shape[0]

@@ -96,18 +96,21 @@ def fit_triptych(
     return _save(fig, path, 100), psnr, ssim
 
 
-def convergence_plot(history: list[dict], names: list[str], path: str | Path) -> Path:
-    """Loss (log) and every parameter relative to its final value, against the step."""
+def convergence_plot(
+    history: list[dict], names: list[str], path: str | Path, eta_search: list[dict] | None = None
+) -> Path:
+    """Loss (log) and every parameter relative to its final value, against the step; with
+    `eta_search` (a fit of `eta`), a third panel: the profile loss at each `eta` tried."""
     plt = _pyplot()
     steps = [h["step"] for h in history]
     loss = [max(h["loss"], 1e-30) for h in history]
     params = np.array([h["params"] for h in history])
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    fig, ax = plt.subplots(1, 3 if eta_search else 2, figsize=(16 if eta_search else 11, 4))
     ax[0].semilogy(steps, loss, "o-")
     ax[0].set_xlabel("step")
     ax[0].set_ylabel("loss (0.5 sum r^2)")
     ax[0].grid(True, which="both", alpha=0.3)
-    for i, n in enumerate(names):
+    for i, n in enumerate(names[: params.shape[1]]):  # eta is not a solver coordinate
         c = _RGB["RGB".index(n[-1])] if n[-1] in "RGB" else None
         ls = "-" if ".sigma_a." in n else "--"
         ax[1].plot(steps, params[:, i] / params[-1, i], ls, color=c, label=n)
@@ -115,6 +118,17 @@ def convergence_plot(history: list[dict], names: list[str], path: str | Path) ->
     ax[1].set_ylabel("parameter / final value")
     ax[1].grid(True, alpha=0.3)
     ax[1].legend(fontsize=7)
+    if eta_search:
+        e = np.array([t["eta"] for t in eta_search])
+        lv = np.maximum([t["loss"] for t in eta_search], 1e-30)
+        order = np.argsort(e)
+        ax[2].semilogy(e[order], lv[order], "-", color="0.7")
+        ax[2].semilogy(e, lv, "o", color="C1")
+        for k, (x, y) in enumerate(zip(e, lv, strict=True)):
+            ax[2].annotate(str(k), (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        ax[2].set_xlabel("eta (each a re-trace; numbers: order tried)")
+        ax[2].set_ylabel("loss after fitting the rest")
+        ax[2].grid(True, which="both", alpha=0.3)
     return _save(fig, path, 100)
 
 

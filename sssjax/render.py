@@ -79,10 +79,10 @@ class Renderer:
         self.n_blocks = -(-self.n_pixels // self.block)
         tr = self.tracer
 
-        def chain(pix, keys, eta):
+        def chain(pix, keys, eta, gain):
             # one tile per device, each run as its own program (not vmapped: a vmapped
             # `switch` would run every branch, and the chain skips the bounces of dead rays)
-            base, slots = tr.with_eta(tr._chain_block, pix[0], keys[0], eta=eta)
+            base, slots = tr.with_params(tr._chain_block, pix[0], keys[0], eta=eta, gain=gain)
             return base[None], jax.tree_util.tree_map(lambda a: a[None], slots)
 
         spec = PartitionSpec("tiles")
@@ -90,20 +90,20 @@ class Renderer:
             jax.shard_map(
                 chain,
                 mesh=self.mesh,
-                in_specs=(spec, spec, PartitionSpec()),
+                in_specs=(spec, spec, PartitionSpec(), PartitionSpec()),
                 out_specs=spec,
                 check_vma=False,
             )
         )
 
-        def sss(slots, keys, cloud, eta):
+        def sss(slots, keys, cloud, eta, gain):
             def one(s, k):
-                return tr.with_eta(tr._sss_block, s, k, cloud, eta=eta)
+                return tr.with_params(tr._sss_block, s, k, cloud, eta=eta, gain=gain)
 
             return jax.vmap(one)(slots, keys)
 
-        def sss_shaded(slots, keys, cloud, media, eta):
-            blocks = sss(slots, keys, cloud, eta)
+        def sss_shaded(slots, keys, cloud, media, eta, gain):
+            blocks = sss(slots, keys, cloud, eta, gain)
             r = jnp.asarray(tr.r_nodes, dtype=float)
             return jax.vmap(lambda b: shade_sss(b, media, r, profile=scene.sss.profile))(blocks)
 
@@ -120,14 +120,16 @@ class Renderer:
     def _keys(self, key, idx):
         return self._put(jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.asarray(idx)))
 
-    def cloud(self, key, eta=None):
-        return self.tracer.cloud(jax.random.fold_in(key, 0x5C0FFEE), eta)
+    def cloud(self, key, eta=None, gain=None):
+        return self.tracer.cloud(jax.random.fold_in(key, 0x5C0FFEE), eta, gain)
 
-    def chunks(self, key, progress_label: str | None, eta=None):
+    def chunks(self, key, progress_label: str | None, eta=None, gain=None):
         """Run phase 1 over chunks of tiles. Yields `(pixels, base, slots)` per chunk (host).
 
-        `eta`: per-shape refractive index (`SceneTracer.eta_for`), default the scene's."""
+        `eta`: per-shape refractive index (`SceneTracer.eta_for`), default the scene's;
+        `gain`: per-light emission factors (default 1)."""
         eta = jnp.asarray(self.tracer.eta_for() if eta is None else eta, dtype=float)
+        gain = self.tracer.gain_for(gain)
         k_tiles = jax.random.fold_in(key, 1)
         bar = _Progress(self.n_blocks, progress_label or "", progress_label is not None)
         step = max(CHUNK_TILES, self.D) // self.D * self.D
@@ -139,7 +141,7 @@ class Renderer:
                 pix = starts[:, None] + np.arange(self.block)[None, :]
                 pix = np.minimum(pix, self.n_pixels - 1).astype(np.int32)
                 base, slots = self._chain(
-                    self._put(jnp.asarray(pix)), self._keys(k_tiles, idx), eta
+                    self._put(jnp.asarray(pix)), self._keys(k_tiles, idx), eta, gain
                 )
                 n = min(self.D, self.n_blocks - g0)
                 pix_l.append(pix[:n])
@@ -184,34 +186,37 @@ class Renderer:
         names = self.tracer.tmat_names
         etas = {n: m.eta for n, m in zip(names, media, strict=True)}
         eta = jnp.asarray(self.tracer.eta_for(etas), dtype=float)
-        cloud = self.cloud(key, eta) if sss_on else None
+        gain = self.tracer.gain_for()
+        cloud = self.cloud(key, eta, gain) if sss_on else None
         counter = [0]
-        for pix, base, slots in self.chunks(key, "rendering" if progress else None, eta):
+        for pix, base, slots in self.chunks(key, "rendering" if progress else None, eta, gain):
             img[pix] = base
             if not sss_on:
                 continue
             for rows, valid, blk, keys in self.sss_blocks(key, slots, counter):
-                L = np.asarray(self._sss_shaded(blk, keys, cloud, media, eta))
+                L = np.asarray(self._sss_shaded(blk, keys, cloud, media, eta, gain))
                 img[pix[rows[valid]]] += L[valid]
         cam = self.scene.camera
         return img.reshape(cam.height, cam.width, 3)
 
-    def trace(self, key, progress: bool, etas: dict | None = None) -> Transport:
+    def trace(self, key, progress: bool, etas: dict | None = None, gain=None) -> Transport:
         """The transport of the whole image; `etas` overrides translucent materials'
-        refractive index by name (geometry: it bends rays), without recompiling."""
+        refractive index by name (geometry: it bends rays) and `gain` multiplies each
+        light's emission (one factor per light, scene order), without recompiling."""
         key = as_key(key, self.scene)
         tr = self.tracer
         eta = jnp.asarray(tr.eta_for(etas), dtype=float)
-        cloud = self.cloud(key, eta) if tr.sss_on else None
+        gain = tr.gain_for(gain)
+        cloud = self.cloud(key, eta, gain) if tr.sss_on else None
         counter = [0]
         pix_all, base_all, rows_all, blocks = [], [], [], []
         offset = 0
-        for pix, base, slots in self.chunks(key, "tracing" if progress else None, eta):
+        for pix, base, slots in self.chunks(key, "tracing" if progress else None, eta, gain):
             pix_all.append(pix)
             base_all.append(base)
             if tr.sss_on:
                 for rows, valid, blk, keys in self.sss_blocks(key, slots, counter):
-                    out = jax.tree_util.tree_map(np.asarray, self._sss(blk, keys, cloud, eta))
+                    out = jax.tree_util.tree_map(np.asarray, self._sss(blk, keys, cloud, eta, gain))
                     for i in range(rows.shape[0]):
                         v = valid[i]
                         if not v.any():

@@ -19,7 +19,7 @@ differentiable `shade` pass needs:
   boundary with shadow rays, the refracted-distance approximation inputs and phase cosines.
 
 Lengths in mm. `eta` of each medium is geometry (it bends rays): it is fixed within a trace,
-but it is an argument of the compiled functions (`SceneTracer.with_eta`), so a fit of `eta`
+but it is an argument of the compiled functions (`SceneTracer.with_params`), so a fit of `eta`
 re-traces at each value tried without recompiling.
 
 Bounces past the camera's run only on the rays still alive (packed into a quarter of the
@@ -185,7 +185,12 @@ class SceneTracer:
     def __init__(self, scene: Scene):
         self.scene = scene
         self.shapes = [s.shape for s in scene.shapes]
-        self.lights = LightArrays.from_scene(scene.lights)
+        self.lights0 = LightArrays.from_scene(scene.lights)
+        self.light_kinds = tuple(
+            {"AreaLight": "area", "PointLight": "point", "BeamLight": "beam"}[type(lt).__name__]
+            for lt in scene.lights
+        )
+        self._gain = None  # per-light emission factors being traced (`with_params`)
         mats = scene.materials
         self.tmat_names = tuple(scene.translucent_materials)
         kinds = {"diffuse": DIFFUSE, "mirror": MIRROR, "translucent": TRANSLUCENT}
@@ -242,15 +247,24 @@ class SceneTracer:
         # a `sssjax.raytree` recorder: set only on a tracer whose methods run eagerly (never
         # under jit); every hook below is skipped while it is None
         self._rec = None
-        self._cloud_fn = jax.jit(functools.partial(self.with_eta, self._cloud))
-        self._chain_fn = jax.jit(functools.partial(self.with_eta, self._chain_block))
-        self._sss_fn = jax.jit(functools.partial(self.with_eta, self._sss_block))
+        self._cloud_fn = jax.jit(functools.partial(self.with_params, self._cloud))
+        self._chain_fn = jax.jit(functools.partial(self.with_params, self._chain_block))
+        self._sss_fn = jax.jit(functools.partial(self.with_params, self._sss_block))
 
-    # -- the refractive index: geometry, but an argument of the compiled functions ----------
+    # -- the refractive index and the lights' emission: arguments of the compiled functions --
     @property
     def shape_eta(self):
-        """Refractive index per shape: the scene's, or the one being traced (`with_eta`)."""
+        """Refractive index per shape: the scene's, or the one being traced (`with_params`)."""
         return self.eta0 if self._eta is None else self._eta
+
+    @property
+    def lights(self) -> LightArrays:
+        """The scene's lights, each one's emission times the factor being traced."""
+        return (
+            self.lights0
+            if self._gain is None
+            else self.lights0.scaled(self._gain, self.light_kinds)
+        )
 
     def eta_for(self, etas: dict | None = None) -> np.ndarray:
         """The per-shape index array with translucent materials' `eta` from `etas` (by
@@ -262,16 +276,18 @@ class SceneTracer:
                 eta[i] = float(etas[name])
         return eta
 
-    def with_eta(self, fn, *args, eta=None):
-        """Run `fn(*args)` with the per-shape index `eta` (default the scene's). The
-        compiled methods take it as an argument, so a fit of `eta` re-traces without
-        recompiling."""
-        prev = self._eta
+    def with_params(self, fn, *args, eta=None, gain=None):
+        """Run `fn(*args)` with the per-shape index `eta` (default the scene's) and the
+        per-light emission factors `gain` (default 1). The compiled methods take both as
+        arguments, so a fit of `eta` re-traces without recompiling, and so does tracing one
+        light alone (a fit of a light's intensity)."""
+        prev = self._eta, self._gain
         self._eta = None if eta is None else jnp.asarray(eta, dtype=float)
+        self._gain = None if gain is None else jnp.asarray(gain, dtype=float)
         try:
             return fn(*args)
         finally:
-            self._eta = prev
+            self._eta, self._gain = prev
 
     # -- geometric queries ---------------------------------------------------------------
     def intersect(self, o, d, t_max=jnp.inf):
@@ -308,10 +324,16 @@ class SceneTracer:
         return t.reshape(shp), n.reshape(*shp, 3)
 
     # -- the irradiance cloud ------------------------------------------------------------
-    def cloud(self, key: PRNGKeyArray, eta=None) -> Cloud:
+    def cloud(self, key: PRNGKeyArray, eta=None, gain=None) -> Cloud:
         """Sample the irradiance cloud of every translucent object (`eta`: per-shape
-        refractive index, default the scene's)."""
-        return self._cloud_fn(key, eta=self.eta_for() if eta is None else eta)
+        refractive index, default the scene's; `gain`: per-light emission factors)."""
+        eta = self.eta_for() if eta is None else eta
+        return self._cloud_fn(key, eta=eta, gain=self.gain_for(gain))
+
+    def gain_for(self, gain=None) -> Array:
+        """Per-light emission factors as the compiled functions take them (default 1)."""
+        n = len(self.light_kinds)
+        return jnp.ones(n) if gain is None else jnp.asarray(gain, dtype=float).reshape(n)
 
     def _cloud(self, key):
         n, nl = self.cloud_n, self.scene.render.light_samples
@@ -383,7 +405,7 @@ class SceneTracer:
         **Returns:** `(base (P, 3), slots)`: `slots` maps `SLOT_FIELDS` to `(P, spp, ...)`
         arrays describing each sample's first translucent hit (`have` False where none).
         """
-        return self._chain_fn(pixels, key, eta=self.eta0)
+        return self._chain_fn(pixels, key, eta=self.eta0, gain=self.gain_for())
 
     def _chain_block(self, pixels, key):
         sc = self.scene
@@ -536,7 +558,7 @@ class SceneTracer:
 
     def sss_block(self, slots: dict, key: PRNGKeyArray, cloud: Cloud) -> SSSBlock:
         """Subsurface terms for a block of pixels given their `slots` (`(P, spp, ...)`)."""
-        return self._sss_fn(slots, key, cloud, eta=self.eta0)
+        return self._sss_fn(slots, key, cloud, eta=self.eta0, gain=self.gain_for())
 
     def _sss_block(self, slots, key, cloud):
         P, S = slots["have"].shape

@@ -57,7 +57,7 @@ def test_solver_jacobian_matches_central_differences(x64):
     media = scene.media()
     m0 = media["marble"]
     target = np.asarray(shade_image(tr, media)) * 1.1
-    data = _trace_data([renderer_for(scene)], as_key(0, scene), target, None, False, media)
+    data = _trace_data(renderer_for(scene), [None], as_key(0, scene), target, None, False, media)
     args, order = _fit_args([data], media, 0.1, jax.numpy.float64)
     free = (("marble", "sigma_a"), ("marble", "sigma_s"))
     p0 = jax.numpy.log(jax.numpy.concatenate([m0.sigma_a, m0.sigma_s]))
@@ -264,26 +264,38 @@ def two_lights(scene, factor=1.0):
 
 
 def test_light_groups_add_up_to_the_scene(x64):
-    """The fit traces each free light alone (the others dark): by linearity in emission
-    their shadings must sum to the full scene's, sample for sample (same random numbers)."""
+    """The fit traces each free light alone (the others dark, by a factor of the compiled
+    tracer): that must equal tracing a scene with the other light switched off, and by
+    linearity in emission the parts must sum to the full scene's, sample for sample."""
+    import dataclasses
+
     from sssjax.fit import _light_groups
+    from sssjax.render import renderer_for
     from sssjax.shade import shade
 
     scene = two_lights(small("marble").with_settings(width=16, height=16, sss_cloud_size=512))
     media = scene.media()
-    full = np.asarray(shade(sssjax.trace(scene, 4), media))
-    groups = _light_groups(scene, [1])
-    assert len(groups) == 2  # the free lamp alone, and the area light
-    parts = [np.asarray(shade(sssjax.trace(g, 4), media)) for g in groups]
+    r = renderer_for(scene)
+    full = np.asarray(shade(r.trace(4, False), media))
+    groups = _light_groups(2, [1])
+    np.testing.assert_array_equal(groups, [[0.0, 1.0], [1.0, 0.0]])
+    parts = [np.asarray(shade(r.trace(4, False, None, g), media)) for g in groups]
     assert np.all(parts[0] >= 0) and parts[0].max() > 0.05 * full.max()  # the lamp matters
     np.testing.assert_allclose(parts[0] + parts[1], full, rtol=1e-9, atol=1e-12 * full.max())
+    area = scene.lights[0]
+    dark = scene.replace(
+        lights=(dataclasses.replace(area, radiance=0 * area.radiance), scene.lights[1])
+    )
+    lamp_only = np.asarray(shade(sssjax.trace(dark, 4), media))
+    np.testing.assert_allclose(parts[0], lamp_only, rtol=1e-9, atol=1e-12 * full.max())
 
 
 def test_free_light_intensity_is_recovered_with_the_coefficients():
     """A target whose lamp is 1.6x brighter than the scene says: the fit with `lights.1`
     free finds 1.6 and the coefficients (same seed, so the minimum is exact)."""
     scene = two_lights(small("marble"))
-    target = np.asarray(sssjax.render(two_lights(small("marble"), 1.6), 0))
+    truth = two_lights(small("marble"), 1.6)
+    target = np.asarray(sssjax.render(truth, 0))
     true = scene.media()["marble"]
     init = {"sigma_a": np.asarray(true.sigma_a) * 2, "sigma_s": np.asarray(true.sigma_s) / 2}
     res = fit(scene, target, params=["sigma_a", "sigma_s", "lights.1"], init=init, seed=0)
@@ -292,6 +304,12 @@ def test_free_light_intensity_is_recovered_with_the_coefficients():
     assert 0 < res.stderr["lights.1"] < 0.01
     got = np.array([res.values[f"marble.sigma_a.{c}"] for c in "RGB"])
     np.testing.assert_allclose(got, true.sigma_a, rtol=0.01)
+    # the fitted scene is the one the target was rendered from
+    fitted = res.apply(scene)
+    np.testing.assert_allclose(fitted.lights[1].intensity, truth.lights[1].intensity, rtol=1e-3)
+    np.testing.assert_array_equal(fitted.lights[0].radiance, truth.lights[0].radiance)
+    med = fitted.media()["marble"]
+    np.testing.assert_allclose(med.sigma_s, true.sigma_s, rtol=0.01)
     # with the lamp held at the scene's value the same target cannot be matched
     held = fit(scene, target, init=init, seed=0)
     assert held.loss_final > 100 * res.loss_final
