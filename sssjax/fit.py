@@ -72,6 +72,8 @@ class FitResult:
     trace_stderr: dict[str, float] | None = None  # from `refine`: the trace-noise part
     # with `eta` free: every refractive index tried, with the loss of the fit there
     eta_search: list[dict[str, float]] | None = None
+    pixels: int = 0  # pixels fitted (per trace)
+    highlight_pixels: int = 0  # translucent pixels left out as highlights (no user mask)
 
     @property
     def exposure(self) -> float:
@@ -124,6 +126,11 @@ class FitResult:
             f"{self.steps} steps, loss {self.loss_initial:.4g} -> {self.loss_final:.4g}, "
             f"{self.status}: {self.message}"
         )
+        if self.highlight_pixels:
+            lines.append(
+                f"{self.pixels} pixels fitted; {self.highlight_pixels} highlight pixels "
+                "(mostly mirror-reflected light, independent of the coefficients) left out"
+            )
         lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)
 
@@ -263,14 +270,18 @@ def fit(
       `"exposure"` or `"lights.N"` (factors > 0);
       default: the scene's (exposure 1).
     - `mask`: `(H, W)` boolean pixels to fit; default: every pixel that sees a translucent
-      object (the only pixels the coefficients affect).
+      object (the only pixels the coefficients affect) except highlights, pixels whose
+      radiance is mostly coefficient-independent (a lamp's or a bright floor's mirror
+      reflection), grown by one pixel: their jittered edges differ between traces by
+      hundreds of times the subsurface signal. `result.highlight_pixels` counts them.
     - `seed`: trace seed (default the scene's).
-    - `traces`: number of independent traces fitted jointly (default 1). Each trace's noise
-      is shared by all its pixels, so a single trace biases the fit by more than its
-      per-pixel error bars say; `traces = 4` roughly halves that bias (and the error bars
-      become more honest) at 4x the trace time.
+    - `traces`: number of independent traces averaged into the fitted model (default 1):
+      one trace with K times the samples. A trace's noise is shared by all its pixels, and
+      a least-squares fit leans toward coefficients whose image is less noisy, so a single
+      trace biases the fit by more than its per-pixel error bars say; K traces cut that
+      noise by K, at K times the trace time (the per-iteration cost barely grows).
     - `refine`: after the fit, trace again with a fresh seed, fit that trace alone from the
-      solution, then fit both jointly. The final values are the joint fit; the difference
+      solution, then fit the average of both. The final values are the joint fit; the difference
       between the two single-trace fits measures the trace noise, which is reported in
       `trace_stderr` and added (in quadrature) to `stderr`.
     - `solver`: `"lm"` (Levenberg-Marquardt), `"gn"` (Gauss-Newton) or `"bfgs"` (on the
@@ -349,6 +360,7 @@ def fit(
             raise FitError(f"mask has shape {mask.shape}, expected {(cam.height, cam.width)}")
     key0 = as_key(seed, scene)
     trace_clock = [0.0]  # seconds spent tracing
+    fit_mask = [mask]  # None: every translucent pixel but the highlights (first trace)
     # several independent traces average out the noise that one trace (its irradiance
     # cloud above all) shares across every pixel, which a single trace fits as signal
     keys = [key0 if k == 0 else jax.random.fold_in(key0, 1000 + k) for k in range(traces)]
@@ -363,7 +375,19 @@ def fit(
             etas = {eta_mat: eta}
             m = media0[eta_mat]
             media[eta_mat] = Medium(m.sigma_a, m.sigma_s, m.g, eta)
-        data = [_trace_data(renderer, gains, k, tgt, mask, progress, media, etas) for k in keys]
+        data = []
+        for k in keys:
+            data.append(_trace_data(renderer, gains, k, tgt, fit_mask[0], progress, media, etas))
+            # the first trace's highlight-free mask holds for every later trace and eta
+            if fit_mask[0] is None and progress:
+                n_hl = data[-1]["n_translucent"] - len(data[-1]["tgt"])
+                print(
+                    f"fitting {len(data[-1]['tgt'])} translucent pixels"
+                    + (f" ({n_hl} highlight pixels left out)" if n_hl else ""),
+                    file=sys.stderr,
+                    flush=True,
+                )
+            fit_mask[0] = data[-1]["mask"]
         trace_clock[0] += time.perf_counter() - t
         return data, media
 
@@ -420,7 +444,7 @@ def fit(
         w_at = run["y"] if weighting == "relative" else None
         other = _solve([fresh], run["y"], weights_at=w_at, **fn_kw)
         if progress:
-            print("refine: joint fit of both traces", file=sys.stderr, flush=True)
+            print("refine: fit the average of both traces", file=sys.stderr, flush=True)
         joint = _solve(data + [fresh], 0.5 * (run["y"] + other["y"]), weights_at=w_at, **fn_kw)
         keys = keys + [jax.random.fold_in(key0, 99_991)]
         # two single-trace solutions differ by trace noise alone (same target): their
@@ -536,6 +560,21 @@ def fit(
             )
     # an unidentified parameter has an infinite error bar (not 0 x inf = nan)
     stderr = np.where(np.isfinite(sd_log), dval * np.where(np.isfinite(sd_log), sd_log, 0), np.inf)
+    vague = [n for n, sd in zip(names, sd_log, strict=True) if not sd < 0.5 and n != "exposure"]
+    if vague:
+        warnings.append(
+            f"{', '.join(vague)}: not determined by this target (error bar beyond +-50%): "
+            "fix them, or use a measurement that constrains them"
+        )
+    # a loss carried by a handful of pixels is an outlier fit, not a measurement
+    r2 = np.sort(r**2)[::-1]
+    n_top = max(1, r.size // 1000)
+    share = float(r2[:n_top].sum() / max(r2.sum(), 1e-300))
+    if share > 0.5 and r.size >= 1000:
+        warnings.append(
+            f"{share:.0%} of the loss comes from {n_top} of {r.size} residuals: outliers "
+            "(highlights, dust, saturated pixels); mask them, or use loss='cauchy'"
+        )
     y_media = y[: 3 * len(free)]
     fitted = dict(zip(order, _media_of(tuple(free), order, y_media, run["args"][3]), strict=True))
     return FitResult(
@@ -563,6 +602,8 @@ def fit(
         warnings=warnings,
         trace_stderr=trace_stderr,
         eta_search=eta_search,
+        pixels=len(data[0]["tgt"]),
+        highlight_pixels=0 if mask is not None else data[0]["n_translucent"] - len(data[0]["tgt"]),
     )
 
 
@@ -621,14 +662,39 @@ def _light_groups(n_lights: int, free_lights: Sequence[int]) -> list[np.ndarray 
     return [np.isin(np.arange(n_lights), g).astype(np.float64) for g in groups]
 
 
+def _highlights(pix, base, tgt, shape) -> np.ndarray:
+    """`(H, W)` pixels whose radiance is mostly independent of the coefficients (a light's
+    mirror reflection on the translucent surface): where the trace's medium-independent
+    radiance `base` (summed over light groups) exceeds half the target's, grown by one
+    pixel. A highlight's jittered edge differs between traces by hundreds of times the
+    subsurface signal, so a handful of such pixels would otherwise decide the loss."""
+    lum = np.array([0.2126, 0.7152, 0.0722])
+    b, t = base.sum(0) @ lum, tgt @ lum
+    hl = np.zeros(shape[0] * shape[1], dtype=bool)
+    hl[pix[b > 0.5 * np.maximum(t, 0.0)]] = True
+    hl = np.pad(hl.reshape(shape), 1)
+    grown = np.zeros(shape, dtype=bool)
+    for dy in range(3):
+        for dx in range(3):
+            grown |= hl[dy : dy + shape[0], dx : dx + shape[1]]
+    return grown
+
+
 def _trace_data(renderer, gains, key, tgt, mask, progress, media0, etas=None):
     """Trace once per light group (`gains`, from `_light_groups`) and keep what the fit
     needs: the subsurface terms of the fitted pixels, their target values and their
-    medium-independent radiance (`base`), per group."""
+    medium-independent radiance (`base`), per group. `mask=None` fits every translucent
+    pixel but the highlights (`_highlights`); `data["mask"]` is the mask used."""
     transports = [renderer.trace(key, progress, etas, g) for g in gains]
     transport = transports[0]
     pix = np.asarray(transport.translucent_pixels())
     rows = np.asarray(transport.t_rows)
+    if mask is None and len(pix):
+        base_all = np.stack([np.asarray(t.base)[rows] for t in transports])
+        hl = _highlights(pix, base_all, tgt.reshape(-1, 3)[pix], tgt.shape[:2])
+        mask = np.ones(tgt.shape[:2], dtype=bool) & ~hl
+        if not mask.reshape(-1)[pix].any():  # nothing but highlight: fit it all
+            mask = np.ones(tgt.shape[:2], dtype=bool)
     if mask is not None:
         rows_sel = np.flatnonzero(mask.reshape(-1)[pix])
         if len(rows_sel) == 0:
@@ -646,6 +712,9 @@ def _trace_data(renderer, gains, key, tgt, mask, progress, media0, etas=None):
         base=np.stack([np.asarray(t.base)[rows[rows_sel]] for t in transports]),
         r_nodes=transport.r_nodes,
         materials=transport.materials,
+        mask=mask,
+        n_translucent=len(pix),
+        pix=pix[rows_sel],
     )
 
 
@@ -670,7 +739,8 @@ def _solve(
     progress,
     weights_at=None,
 ):
-    """Run the solver on the traces in `data` (fitted jointly) from `y0` (log parameters).
+    """Run the solver on the traces in `data` (averaged, `_fit_args`) from `y0` (log
+    parameters).
 
     With relative weighting, each pixel's weight is `1 / (value / mean + rel_floor)` with
     `value` the target's, or the model's at `weights_at` when given."""
@@ -745,17 +815,38 @@ def _solve(
 
 
 def _fit_args(data, media0, loss_scale, dt):
-    """The residual functions' `args` for the traces in `data` (fitted jointly): prepared
-    subsurface terms (per light group), target and medium-independent radiance (per light
-    group) in units of the target's mean level, the media held fixed, the robust-loss scale
-    and unit weights."""
-    tgt_flat = np.concatenate([d["tgt"] for d in data])
-    base = np.concatenate([d["base"] for d in data], axis=1)  # (light groups, P, 3)
+    """The residual functions' `args` for the traces in `data` (independent traces of the
+    same target, averaged on the pixels they share): prepared subsurface terms (per light
+    group), target and medium-independent radiance (per light group) in units of the
+    target's mean level, the media held fixed, the robust-loss scale and unit weights.
+
+    Averaging the traces' models (rather than fitting each trace to the target) is one trace
+    with K times the samples: the fit trace's own noise, which a least-squares fit lowers by
+    moving toward the coefficients whose image is least noisy (an errors-in-variables bias:
+    sharper kernels lean on the per-pixel near field rather than the noisy cloud), falls
+    as 1/K instead of staying."""
+    if len(data) > 1:
+        common = functools.reduce(np.intersect1d, [d["pix"] for d in data])
+        sel = []
+        for d in data:
+            order_p = np.argsort(d["pix"])
+            sel.append(order_p[np.searchsorted(d["pix"][order_p], common)])
+    else:
+        sel = [slice(None)]
+    tgt_flat = data[0]["tgt"][sel[0]]
+    base = np.mean([d["base"][:, s] for d, s in zip(data, sel, strict=True)], axis=0)
     scale = float(np.mean(np.abs(tgt_flat))) or 1.0  # residuals in units of the mean level
     order = data[0]["materials"]
     groups = range(len(data[0]["sub"]))
+
+    def rows(terms, s):
+        return terms if isinstance(s, slice) else terms.rows(jnp.asarray(s))
+
     args = (
-        tuple(ShadingTerms.concat([d["sub"][g] for d in data]) for g in groups),
+        tuple(
+            ShadingTerms.mean([rows(d["sub"][g], s) for d, s in zip(data, sel, strict=True)])
+            for g in groups
+        ),
         jnp.asarray(tgt_flat / scale, dtype=dt),
         data[0]["r_nodes"],
         tuple(media0[m] for m in order),
@@ -869,7 +960,9 @@ def _step(slv, fn, residuals, y, args, options, state):
 
 
 def _progress_line(step: int, loss: float, names: list[str], vals: np.ndarray) -> None:
-    shown = "  ".join(f"{n.split('.', 1)[-1]}={v:.4g}" for n, v in zip(names, vals, strict=True))
+    # the material name is dropped (one material in most fits); a light keeps its prefix
+    short = [n if n.startswith("lights.") else n.split(".", 1)[-1] for n in names]
+    shown = "  ".join(f"{n}={v:.4g}" for n, v in zip(short, vals, strict=True))
     print(f"step {step:3d}  loss {loss:.6g}  {shown}", file=sys.stderr, flush=True)
 
 

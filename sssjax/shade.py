@@ -74,15 +74,19 @@ class ShadingTerms(eqx.Module):
         )
 
     @staticmethod
-    def concat(parts: Sequence[ShadingTerms]) -> ShadingTerms:
-        """The terms of several blocks, their pixel rows one after another."""
-        cat = jnp.concatenate
+    def mean(parts: Sequence[ShadingTerms]) -> ShadingTerms:
+        """The terms of independent traces of the same pixels, averaged: one trace with
+        `len(parts)` times the samples (the histograms averaged, the single-scattering
+        records pooled at `1 / len(parts)` of their weight)."""
+        cat, k = jnp.concatenate, len(parts)
+        if k == 1:
+            return parts[0]
         return ShadingTerms(
-            cat([p.ms_hist for p in parts], axis=2),
-            cat([p.ss_mat for p in parts]),
-            cat([p.ss_length for p in parts]),
-            cat([p.ss_cos_phase for p in parts]),
-            cat([p.ss_weight for p in parts], axis=1),
+            sum(p.ms_hist for p in parts) / k,
+            cat([p.ss_mat for p in parts], axis=1),
+            cat([p.ss_length for p in parts], axis=1),
+            cat([p.ss_cos_phase for p in parts], axis=1),
+            cat([p.ss_weight for p in parts], axis=2) / k,
             parts[0].profile,
         )
 
