@@ -39,6 +39,7 @@ __all__ = ["fit", "FitResult", "FitError", "PARAM_FIELDS"]
 PARAM_FIELDS = ("sigma_a", "sigma_s", "sigmap_s", "g", "eta")
 ETA_RANGE = (1.0, 2.5)  # the refractive indices a fit of eta searches (exclusive of 1)
 _CH = "RGB"
+HIGHLIGHT_LEVEL = 4.0  # a highlight is this many times the translucent pixels' median
 
 
 class FitError(ValueError):
@@ -663,15 +664,17 @@ def _light_groups(n_lights: int, free_lights: Sequence[int]) -> list[np.ndarray 
 
 
 def _highlights(pix, base, tgt, shape) -> np.ndarray:
-    """`(H, W)` pixels whose radiance is mostly independent of the coefficients (a light's
-    mirror reflection on the translucent surface): where the trace's medium-independent
-    radiance `base` (summed over light groups) exceeds half the target's, grown by one
-    pixel. A highlight's jittered edge differs between traces by hundreds of times the
-    subsurface signal, so a handful of such pixels would otherwise decide the loss."""
+    """`(H, W)` highlight pixels: a light's mirror reflection on the translucent surface,
+    where the trace's medium-independent radiance `base` (summed over light groups) is
+    both more than half the target's and more than `HIGHLIGHT_LEVEL` times the translucent
+    pixels' median, grown by one pixel. A highlight's jittered edge differs between traces
+    by hundreds of times the subsurface signal, so a handful of such pixels would otherwise
+    decide the loss; a dim reflection (of the floor, say) is kept."""
     lum = np.array([0.2126, 0.7152, 0.0722])
     b, t = base.sum(0) @ lum, tgt @ lum
+    level = HIGHLIGHT_LEVEL * max(float(np.median(np.abs(t))), 1e-30)
     hl = np.zeros(shape[0] * shape[1], dtype=bool)
-    hl[pix[b > 0.5 * np.maximum(t, 0.0)]] = True
+    hl[pix[(b > 0.5 * np.maximum(t, 0.0)) & (b > level)]] = True
     hl = np.pad(hl.reshape(shape), 1)
     grown = np.zeros(shape, dtype=bool)
     for dy in range(3):

@@ -391,3 +391,93 @@ def test_bad_eta_parameters(kwargs, message):
     scene = small("marble").with_settings(width=16, height=16)
     with pytest.raises(FitError, match=message):
         fit(scene, np.ones((16, 16, 3)), **kwargs)
+
+
+def test_highlights_are_the_coefficient_independent_pixels_grown_by_one():
+    """`_highlights` flags a pixel where the medium-independent radiance (summed over light
+    groups) is more than half the target's and more than HIGHLIGHT_LEVEL times the median,
+    and its 8 neighbours; nothing else."""
+    from sssjax.fit import HIGHLIGHT_LEVEL, _highlights
+
+    shape = (6, 7)
+    pix = np.arange(42)
+    tgt = np.full((42, 3), 1.0)
+    base = np.zeros((2, 42, 3))
+    tgt[2 * 7 + 3] = 3 * HIGHLIGHT_LEVEL
+    base[0, 2 * 7 + 3] = HIGHLIGHT_LEVEL  # 2 x level of 3 x level: more than half, two groups
+    base[1, 2 * 7 + 3] = HIGHLIGHT_LEVEL
+    tgt[5 * 7 + 6] = 3 * HIGHLIGHT_LEVEL
+    base[0, 5 * 7 + 6] = 1.2 * HIGHLIGHT_LEVEL  # bright, but less than half: kept
+    base[0, 0 * 7 + 6] = 0.9 * HIGHLIGHT_LEVEL  # all of the target, but dim: kept
+    hl = _highlights(pix, base, tgt, shape)
+    expected = np.zeros(shape, dtype=bool)
+    expected[1:4, 2:5] = True
+    np.testing.assert_array_equal(hl, expected)
+    # a pixel that only its neighbour's highlight grows into must be a translucent pixel's
+    # neighbour in the image, not in the list: flag a corner, stay inside the image
+    base[:] = 0
+    base[0, 0] = 5.0 * HIGHLIGHT_LEVEL
+    hl = _highlights(pix, base, tgt, shape)
+    assert hl.sum() == 4 and hl[:2, :2].all()
+
+
+def test_default_mask_leaves_out_the_mirrored_lamp():
+    """skin_sphere mirrors its area lamp in the sphere: in the target (an independent seed)
+    those pixels are hundreds of times the subsurface signal and jitter at their edges; the
+    default mask must leave out every one of them, and keep the sphere's body."""
+    scene = sssjax.load_scene(ROOT / "scenes" / "skin_sphere.toml").with_settings(
+        width=64, height=64, spp=4, sss_cloud_size=1024, light_samples=2
+    )
+    target = np.asarray(sssjax.render(scene, 1))
+    res = fit(scene, target, seed=0, max_steps=1)
+    tr = sssjax.trace(scene, 0)
+    pix = np.asarray(tr.translucent_pixels())
+    lum = target.reshape(-1, 3)[pix] @ np.array([0.2126, 0.7152, 0.0722])
+    lamp = pix[lum > 50 * np.median(lum)]  # the mirrored lamp (radiance 400 vs ~0.2)
+    assert len(lamp) >= 3
+    assert res.highlight_pixels >= len(lamp)
+    assert res.pixels > 0.5 * len(pix)  # the body is kept
+    assert res.pixels + res.highlight_pixels == len(pix)
+    # nothing of the lamp reaches the residuals: the largest fitted target value is small
+    from sssjax.fit import _trace_data, _light_groups
+    from sssjax.render import as_key, renderer_for
+
+    d = _trace_data(
+        renderer_for(scene), _light_groups(2, []), as_key(0, scene), target, None, False,
+        scene.media(),
+    )
+    assert not np.isin(lamp, d["pix"]).any()
+    assert d["tgt"].max() < 50 * np.median(lum)
+
+
+def test_traces_average_into_one_model(x64):
+    """`traces = K` fits the mean of the K traces' models on the pixels they share (one trace
+    with K x the samples), by the image's linearity in the transport: `_model` of the
+    combined args equals the mean of the single-trace models at any coefficients."""
+    import jax.numpy as jnp
+
+    from sssjax.fit import _fit_args, _Layout, _light_groups, _model, _trace_data
+    from sssjax.render import as_key, renderer_for
+
+    scene = small("marble").with_settings(width=20, height=20, sss_cloud_size=512)
+    target = np.asarray(sssjax.render(scene, 5))
+    media = scene.media()
+    r = renderer_for(scene)
+    data = [
+        _trace_data(r, _light_groups(1, []), as_key(s, scene), target, None, False, media)
+        for s in (1, 2, 3)
+    ]
+    args, order = _fit_args(data, media, 0.1, jnp.float64)
+    layout = _Layout((("marble", "sigma_a"), ("marble", "sigma_s")), order, False, 0)
+    y = jnp.log(jnp.asarray([0.004, 0.003, 0.01, 1.5, 2.0, 3.5]))
+    combined = np.asarray(_model(layout, y, args)) * args[4]
+    common = np.intersect1d(np.intersect1d(data[0]["pix"], data[1]["pix"]), data[2]["pix"])
+    assert len(common) < len(data[0]["pix"]) + 5  # silhouette pixels may differ
+    singles = []
+    for d in data:
+        a1, _ = _fit_args([d], media, 0.1, jnp.float64)
+        m1 = np.asarray(_model(layout, y, a1)) * a1[4]
+        pos = {p: i for i, p in enumerate(d["pix"])}
+        singles.append(m1[[pos[p] for p in common]])
+    np.testing.assert_allclose(combined, np.mean(singles, axis=0), rtol=1e-10, atol=1e-14)
+    assert np.abs(singles[0] - singles[1]).max() > 1e-3 * np.abs(singles[0]).max()  # noisy
