@@ -182,7 +182,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     fitted = render(res.apply(scene), job.seed) * res.exposure
     write_image(out / "fit.exr", fitted)
     write_image(out / "fit.png", fitted)
-    _, psnr, ssim = fit_triptych(np.asarray(target), fitted, out / "triptych.png")
+    _, psnr, ssim = fit_triptych(np.asarray(target), fitted, out / "triptych.png", res.highlights)
     convergence_plot(res.history, res.names, out / "convergence.png", res.eta_search)
     res.to_json(out / "result.json")
     print(res.summary())

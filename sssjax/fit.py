@@ -75,6 +75,8 @@ class FitResult:
     eta_search: list[dict[str, float]] | None = None
     pixels: int = 0  # pixels fitted (per trace)
     highlight_pixels: int = 0  # translucent pixels left out as highlights (no user mask)
+    # `(H, W)` the highlight pixels left out (not in the JSON)
+    highlights: np.ndarray | None = dataclasses.field(default=None, repr=False)
 
     @property
     def exposure(self) -> float:
@@ -101,6 +103,7 @@ class FitResult:
     def to_json(self, path: str | Path | None = None) -> str:
         """The result as JSON (media as coefficient lists); written to `path` if given."""
         d = dataclasses.asdict(self)
+        d.pop("highlights")
         d["media"] = {
             n: {
                 "sigma_a": np.asarray(m.sigma_a).tolist(),
@@ -605,7 +608,16 @@ def fit(
         eta_search=eta_search,
         pixels=len(data[0]["tgt"]),
         highlight_pixels=0 if mask is not None else data[0]["n_translucent"] - len(data[0]["tgt"]),
+        highlights=None if mask is not None else _left_out(data[0], tgt.shape[:2]),
     )
+
+
+def _left_out(d, shape) -> np.ndarray:
+    """`(H, W)` the translucent pixels of trace data `d` that its mask left out."""
+    out = np.zeros(shape[0] * shape[1], dtype=bool)
+    out[d["all_pix"]] = True
+    out[d["pix"]] = False
+    return out.reshape(shape)
 
 
 def _search_eta(traced, y0, eta_init, eta_mat, fn_kw, progress):
@@ -718,6 +730,7 @@ def _trace_data(renderer, gains, key, tgt, mask, progress, media0, etas=None):
         mask=mask,
         n_translucent=len(pix),
         pix=pix[rows_sel],
+        all_pix=pix,
     )
 
 

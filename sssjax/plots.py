@@ -63,12 +63,14 @@ def plot_profiles(names: Sequence[str], path: str | Path, r_max_mm: float = 20.0
 
 
 def fit_triptych(
-    target: np.ndarray, fitted: np.ndarray, path: str | Path
+    target: np.ndarray, fitted: np.ndarray, path: str | Path, left_out: np.ndarray | None = None
 ) -> tuple[Path, float, float]:
     """Target | fit | residual picture with PSNR and SSIM of the fit against the target.
 
     Images are compared after the same display mapping (scaled by the target's 99.5th
-    percentile, sRGB-encoded), which is what a person sees.
+    percentile, sRGB-encoded), which is what a person sees. `left_out`: `(H, W)` pixels
+    the fit did not use (its highlights), shown in blue on the residual and left out of
+    its colour scale.
 
     **Returns:** `(path, psnr_db, ssim)`.
     """
@@ -88,8 +90,13 @@ def fit_triptych(
     ax[0].set_title("target")
     ax[1].imshow(f_disp)
     ax[1].set_title(f"fit  (PSNR {psnr:.1f} dB, SSIM {ssim:.4f})")
-    im = ax[2].imshow(resid, cmap="magma")
-    ax[2].set_title("|fit - target| (sum RGB, / display white)")
+    cmap = plt.get_cmap("magma").with_extremes(bad=(0.2, 0.45, 1.0))
+    title = "|fit - target| (sum RGB, / display white)"
+    if left_out is not None and left_out.any():
+        resid = np.ma.masked_array(resid, mask=left_out)
+        title += "\nblue: highlights the fit left out"
+    im = ax[2].imshow(resid, cmap=cmap)
+    ax[2].set_title(title)
     fig.colorbar(im, ax=ax[2], fraction=0.046)
     for a in ax:
         a.axis("off")

@@ -263,7 +263,7 @@ def two_lights(scene, factor=1.0):
     return scene.replace(lights=(*scene.lights, lamp))
 
 
-def test_light_groups_add_up_to_the_scene(x64):
+def test_light_groups_add_up_to_the_scene():
     """The fit traces each free light alone (the others dark, by a factor of the compiled
     tracer): that must equal tracing a scene with the other light switched off, and by
     linearity in emission the parts must sum to the full scene's, sample for sample."""
@@ -273,7 +273,8 @@ def test_light_groups_add_up_to_the_scene(x64):
     from sssjax.render import renderer_for
     from sssjax.shade import shade
 
-    scene = two_lights(small("marble").with_settings(width=16, height=16, sss_cloud_size=512))
+    # the scene of the next test (its compiled tracer is shared), in float32
+    scene = two_lights(small("marble"))
     media = scene.media()
     r = renderer_for(scene)
     full = np.asarray(shade(r.trace(4, False), media))
@@ -281,13 +282,13 @@ def test_light_groups_add_up_to_the_scene(x64):
     np.testing.assert_array_equal(groups, [[0.0, 1.0], [1.0, 0.0]])
     parts = [np.asarray(shade(r.trace(4, False, None, g), media)) for g in groups]
     assert np.all(parts[0] >= 0) and parts[0].max() > 0.05 * full.max()  # the lamp matters
-    np.testing.assert_allclose(parts[0] + parts[1], full, rtol=1e-9, atol=1e-12 * full.max())
+    np.testing.assert_allclose(parts[0] + parts[1], full, rtol=1e-5, atol=1e-6 * full.max())
     area = scene.lights[0]
     dark = scene.replace(
         lights=(dataclasses.replace(area, radiance=0 * area.radiance), scene.lights[1])
     )
     lamp_only = np.asarray(shade(sssjax.trace(dark, 4), media))
-    np.testing.assert_allclose(parts[0], lamp_only, rtol=1e-9, atol=1e-12 * full.max())
+    np.testing.assert_allclose(parts[0], lamp_only, rtol=1e-5, atol=1e-6 * full.max())
 
 
 def test_free_light_intensity_is_recovered_with_the_coefficients():
@@ -439,11 +440,16 @@ def test_default_mask_leaves_out_the_mirrored_lamp():
     assert res.pixels > 0.5 * len(pix)  # the body is kept
     assert res.pixels + res.highlight_pixels == len(pix)
     # nothing of the lamp reaches the residuals: the largest fitted target value is small
-    from sssjax.fit import _trace_data, _light_groups
+    from sssjax.fit import _light_groups, _trace_data
     from sssjax.render import as_key, renderer_for
 
     d = _trace_data(
-        renderer_for(scene), _light_groups(2, []), as_key(0, scene), target, None, False,
+        renderer_for(scene),
+        _light_groups(2, []),
+        as_key(0, scene),
+        target,
+        None,
+        False,
         scene.media(),
     )
     assert not np.isin(lamp, d["pix"]).any()
