@@ -4,6 +4,12 @@ from pathlib import Path
 # Loading a cached CPU executable logs a spurious "machine type doesn't match" error per
 # entry (same machine): keep XLA's C++ log to fatal messages in the tests.
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+# The tests' scenes are small: compiling dominates running, and LLVM's optimisation level 0
+# compiles about 20% faster (measured on the 2-core machine) at no cost the tests can feel.
+if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
+    ).strip()
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
