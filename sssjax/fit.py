@@ -487,7 +487,12 @@ def fit(
         # information sits in particular pixels: the heteroscedasticity-consistent
         # "sandwich" covariance (White 1980) is honest then; take the larger of the two
         cov_hc = inv @ ((J * (r**2 * r.size / dof)[:, None]).T @ J) @ inv  # HC1
-        scale_hc = np.sqrt(np.clip(np.diag(cov_hc), 0, None) / np.diag(cov_log))
+        # a numerically singular J^T J can give a negative diagonal: no ratio there (the
+        # parameter's error bar is then infinite, below)
+        d_log = np.diag(cov_log)
+        ok = d_log > 0
+        scale_hc = np.ones_like(d_log)
+        scale_hc[ok] = np.sqrt(np.clip(np.diag(cov_hc)[ok], 0, None) / d_log[ok])
         scale_hc = np.maximum(np.nan_to_num(scale_hc, nan=1.0), 1.0)
         cov_log = cov_log * np.outer(scale_hc, scale_hc)
         if not np.isfinite(cond) or cond > 1e12:
@@ -503,7 +508,9 @@ def fit(
     dval = np.where(tanh_idx[: y.size], 1.0 - vals**2, vals)
     if eta_mat is not None:  # eta is its own coordinate
         vals, dval = np.append(vals, eta_star), np.append(dval, 1.0)
-    sd_log = np.sqrt(np.clip(np.diag(cov_log), 0, None))
+    diag = np.diag(cov_log)
+    # a negative variance is a numerically singular J^T J: that parameter is not determined
+    sd_log = np.where(diag >= 0, np.sqrt(np.abs(diag)), np.inf)
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov_log / np.outer(sd_log, sd_log)
     trace_stderr = None
@@ -512,7 +519,7 @@ def fit(
             trace_sd = np.append(trace_sd, 0.0)  # refine re-fits the others at eta*
         trace_stderr = dict(zip(names, (dval * trace_sd).tolist(), strict=True))
         sd_log = np.sqrt(sd_log**2 + trace_sd**2)
-        ratio = np.max(trace_sd / np.maximum(np.sqrt(np.diag(cov_log)), 1e-300))
+        ratio = np.max(trace_sd / np.maximum(np.sqrt(np.abs(np.diag(cov_log))), 1e-300))
         if ratio > 2:
             warnings.append(
                 f"trace noise dominates the error (up to {ratio:.0f}x the statistical "
