@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from scipy.ndimage import binary_dilation
 
 from ._numerics import safe_sqrt
 from ._solvers import NormalGaussNewton, NormalLevenbergMarquardt
@@ -73,7 +74,7 @@ class FitResult:
     trace_stderr: dict[str, float] | None = None  # from `refine`: the trace-noise part
     # with `eta` free: every refractive index tried, with the loss of the fit there
     eta_search: list[dict[str, float]] | None = None
-    pixels: int = 0  # pixels fitted (per trace)
+    pixels: int = 0  # pixels fitted (with several traces: the ones they all see)
     highlight_pixels: int = 0  # translucent pixels left out as highlights (no user mask)
     # `(H, W)` the highlight pixels left out (not in the JSON)
     highlights: np.ndarray | None = dataclasses.field(default=None, repr=False)
@@ -384,7 +385,7 @@ def fit(
             data.append(_trace_data(renderer, gains, k, tgt, fit_mask[0], progress, media, etas))
             # the first trace's highlight-free mask holds for every later trace and eta
             if fit_mask[0] is None and progress:
-                n_hl = data[-1]["n_translucent"] - len(data[-1]["tgt"])
+                n_hl = len(data[-1]["all_pix"]) - len(data[-1]["pix"])
                 print(
                     f"fitting {len(data[-1]['tgt'])} translucent pixels"
                     + (f" ({n_hl} highlight pixels left out)" if n_hl else ""),
@@ -586,6 +587,7 @@ def fit(
             f"{share:.0%} of the loss comes from {n_top} of {r.size} residuals: outliers "
             "(highlights, dust, saturated pixels); mask them, or use loss='cauchy'"
         )
+    highlights = None if mask is not None else _left_out(data[0], tgt.shape[:2])
     y_media = y[: 3 * len(free)]
     fitted = dict(zip(order, _media_of(tuple(free), order, y_media, run["args"][3]), strict=True))
     return FitResult(
@@ -613,9 +615,9 @@ def fit(
         warnings=warnings,
         trace_stderr=trace_stderr,
         eta_search=eta_search,
-        pixels=len(data[0]["tgt"]),
-        highlight_pixels=0 if mask is not None else data[0]["n_translucent"] - len(data[0]["tgt"]),
-        highlights=None if mask is not None else _left_out(data[0], tgt.shape[:2]),
+        pixels=int(run["args"][1].shape[0]),  # the pixels all traces share
+        highlight_pixels=0 if highlights is None else int(highlights.sum()),
+        highlights=highlights,
     )
 
 
@@ -694,12 +696,7 @@ def _highlights(pix, base, tgt, shape) -> np.ndarray:
     level = HIGHLIGHT_LEVEL * max(float(np.median(np.abs(t))), 1e-30)
     hl = np.zeros(shape[0] * shape[1], dtype=bool)
     hl[pix[(b > 0.5 * np.maximum(t, 0.0)) & (b > level)]] = True
-    hl = np.pad(hl.reshape(shape), 1)
-    grown = np.zeros(shape, dtype=bool)
-    for dy in range(3):
-        for dx in range(3):
-            grown |= hl[dy : dy + shape[0], dx : dx + shape[1]]
-    return grown
+    return binary_dilation(hl.reshape(shape), structure=np.ones((3, 3), dtype=bool))
 
 
 def _trace_data(renderer, gains, key, tgt, mask, progress, media0, etas=None):
@@ -714,7 +711,7 @@ def _trace_data(renderer, gains, key, tgt, mask, progress, media0, etas=None):
     if mask is None and len(pix):
         base_all = np.stack([np.asarray(t.base)[rows] for t in transports])
         hl = _highlights(pix, base_all, tgt.reshape(-1, 3)[pix], tgt.shape[:2])
-        mask = np.ones(tgt.shape[:2], dtype=bool) & ~hl
+        mask = ~hl
         if not mask.reshape(-1)[pix].any():  # nothing but highlight: fit it all
             mask = np.ones(tgt.shape[:2], dtype=bool)
     if mask is not None:
@@ -735,9 +732,8 @@ def _trace_data(renderer, gains, key, tgt, mask, progress, media0, etas=None):
         r_nodes=transport.r_nodes,
         materials=transport.materials,
         mask=mask,
-        n_translucent=len(pix),
-        pix=pix[rows_sel],
-        all_pix=pix,
+        pix=pix[rows_sel],  # the fitted pixels (flat image indices)
+        all_pix=pix,  # every translucent pixel
     )
 
 
