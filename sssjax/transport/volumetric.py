@@ -1,0 +1,864 @@
+"""The volumetric transport: exact light transport by random walks inside the actual
+geometry of every translucent object, re-weighted (not re-traced) for other coefficients.
+
+**The walk.** Each camera sample starts three walkers, one per RGB channel, each sampled with
+its own proposal coefficients `sigma_s0`, `sigma_t0` (the scene's media unless given).
+Outside objects a walker is a path tracer with unlimited depth: diffuse surfaces
+(next-event estimation to every kind of light, then a cosine-weighted bounce), mirrors,
+and smooth dielectric boundaries of translucent objects (exact unpolarised Fresnel
+reflectance chooses reflection or refraction, total internal reflection included). Inside
+a homogeneous medium it takes exact exponential free flights at `sigma_t0`, scatters with the
+Henyey-Greenstein phase function (weight `sigma_s0 / sigma_t0` per event) and meets the
+boundary again. Light that leaves an object continues as a normal ray: it can hit the floor,
+a mirror, a light or the object again, so translucent shadows, light through thin parts and
+interreflections are in the image. Russian roulette on the coefficient-independent weight
+ends paths without bias.
+
+**Next-event estimation inside media.** At every scattering vertex one light is chosen by
+power and connected through the boundary by the refracted path (`_connect`: planar faces in
+closed form, spheres by their stationary optical paths), with the generalised geometry term,
+Fresnel transmittance, phase function and attenuation. Paths that scatter, reach a covered
+boundary point and leave straight into an area light are not counted again when they hit it
+(the estimator already did); where the estimator cannot reach (curved sides of cylinders and
+cones, large meshes) those hits count, so the image stays unbiased, only noisier. Beam
+lights are reached by a second scattering on the refracted beam (equiangular sampling).
+
+**Trace once, shade many, exactly.** A path's weight depends on the coefficients only through
+its number of scattering events `n` and its length `L` in each medium:
+`w(sigma) = w0 (sigma_s / sigma_s0)^n exp(-(sigma_t - sigma_t0) L)` (perturbation Monte
+Carlo, Hayakawa et al. 2001). Each walker keeps `K` records `(n, L)` drawn from its
+contributions in proportion to their weight at the proposal (weighted reservoir sampling with
+replacement, `K` independent slots) and the total weight `W`: `W / K sum_k f_k(sigma)` is
+an unbiased estimate of the walker's radiance for any coefficients, exact at the proposal.
+Contributions of paths that never entered a medium go to `base`.
+
+Lengths in mm, coefficients in mm^-1, radiance in W mm^-2 sr^-1 (basic radiance `L / n^2`
+inside media, so refraction multiplies by the Fresnel transmittance only).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int, PRNGKeyArray
+
+from .._numerics import safe_div, safe_sqrt
+from ..camera import camera_rays
+from ..dipole import fresnel_reflectance, hg_phase
+from ..sampling import stratified_2d
+from ..shapes import intersect_all
+from ._connect import (
+    exit_map_G,
+    in_face,
+    planar_connection,
+    refract_dir,
+    sphere_connections,
+    sphere_exit,
+)
+from ._volscene import DIFFUSE, MIRROR, TRANSLUCENT, VolScene
+
+__all__ = [
+    "VolumetricTerms",
+    "Proposal",
+    "trace_block",
+    "shade_terms",
+    "effective_sample_size",
+    "WalkStats",
+]
+
+EPS = 1e-3  # mm: ray offsets off surfaces
+RR_WEIGHT = 0.05  # Russian roulette below this path weight (camera paths start at 1)
+RR_MIN_EVENTS = 4
+MAX_EVENTS = 1 << 17  # safety cap; walks cut here are counted in `WalkStats.truncated`
+_NU = 14  # uniform numbers per walker and event
+_LEDGER = ("escaped", "emitter", "absorbed", "roulette", "cut")
+_WIDTHS = (1, 8, 64)  # walkers are packed into 1/k of the block as they end
+_PHASE = 8  # events between re-packings
+
+
+class Proposal(eqx.Module):
+    """The coefficients the walks are sampled with, per translucent material and channel
+    (`(Mt, 3)`, mm^-1), and the phase function's `g` (fixed: it is not re-weighted)."""
+
+    sigma_s: Float[Array, "Mt 3"]
+    sigma_t: Float[Array, "Mt 3"]
+    g: Float[Array, "Mt 3"]
+
+    @classmethod
+    def from_media(cls, media) -> Proposal:
+        if not media:
+            z = jnp.zeros((0, 3))
+            return cls(z, z, z)
+        ss = jnp.stack([jnp.broadcast_to(m.sigma_s, (3,)) for m in media])
+        st = jnp.stack([jnp.broadcast_to(m.sigma_t, (3,)) for m in media])
+        g = jnp.stack([jnp.broadcast_to(m.g, (3,)) for m in media])
+        return cls(ss, st, g)
+
+
+class VolumetricTerms(eqx.Module):
+    """Re-weightable records of a block of pixels (`P` pixels, `R = spp K` records per
+    channel, `Mt` materials): radiance `sum_r w f_r(sigma)` per channel."""
+
+    w: Float[Array, "3 P R"]  # W / (K spp): the record's share of the pixel at the proposal
+    n: Float[Array, "3 P R Mt"]  # scattering events in each medium
+    L: Float[Array, "3 P R Mt"]  # path length in each medium, mm
+    sigma_s0: Float[Array, "Mt 3"]
+    sigma_t0: Float[Array, "Mt 3"]
+
+    def rows(self, rows) -> VolumetricTerms:
+        return VolumetricTerms(
+            self.w[:, rows], self.n[:, rows], self.L[:, rows], self.sigma_s0, self.sigma_t0
+        )
+
+    @staticmethod
+    def mean(parts) -> VolumetricTerms:
+        """Independent traces of the same pixels (same proposal) as one trace with all their
+        records, each at `1 / len(parts)` of its weight."""
+        k = len(parts)
+        if k == 1:
+            return parts[0]
+        cat = jnp.concatenate
+        return VolumetricTerms(
+            cat([p.w for p in parts], axis=2) / k,
+            cat([p.n for p in parts], axis=2),
+            cat([p.L for p in parts], axis=2),
+            parts[0].sigma_s0,
+            parts[0].sigma_t0,
+        )
+
+
+class WalkStats(eqx.Module):
+    """Diagnostics of a block's walks: events (free flights and surface hits) in total, the
+    longest walk, walks cut at `MAX_EVENTS` and walkers lost (numerical leaks), and where the
+    walkers' (coefficient-independent) weight went, summed over walkers: `escaped` (to the
+    background / environment), `emitter` (into a light), `absorbed` (in media and on
+    surfaces), `roulette` (net weight removed by Russian roulette, expectation 0) and `cut`
+    (walks stopped at `MAX_EVENTS` or lost). They add up to the number of walkers."""
+
+    events: Array
+    longest: Array
+    truncated: Array
+    lost: Array
+    escaped: Array
+    emitter: Array
+    absorbed: Array
+    roulette: Array
+    cut: Array
+
+
+def _log_factor(n, L, sigma_s, sigma_t, sigma_s0, sigma_t0):
+    """`log f = n log(sigma_s / sigma_s0) - (sigma_t - sigma_t0) L`, finite at `sigma_s = 0`
+    (then `f = 0` for `n > 0`) with finite gradients."""
+    ratio = sigma_s / sigma_s0
+    pos = ratio > 0
+    log_r = jnp.where(pos, jnp.log(jnp.where(pos, ratio, 1.0)), -1e4)
+    nl = jnp.where(n > 0, n * log_r, 0.0)
+    return nl - (sigma_t - sigma_t0) * L
+
+
+def shade_terms(terms: VolumetricTerms, media) -> Float[Array, "P 3"]:
+    """Radiance `(P, 3)` of the records for `media` (a sequence, one `Medium` per material,
+    coefficients in mm^-1): the exact re-weighting of the walks to these coefficients."""
+    Mt = terms.n.shape[-1]
+    if Mt == 0:
+        return jnp.zeros(terms.w.shape[1:2] + (3,), terms.w.dtype)
+    ss = jnp.stack([jnp.broadcast_to(m.sigma_s, (3,)) for m in media])  # (Mt, 3)
+    st = jnp.stack([jnp.broadcast_to(m.sigma_t, (3,)) for m in media])
+    out = []
+    for c in range(3):
+        lf = _log_factor(
+            terms.n[c],
+            terms.L[c],
+            ss[:, c],
+            st[:, c],
+            terms.sigma_s0[:, c],
+            terms.sigma_t0[:, c],
+        )  # (P, R, Mt)
+        out.append(jnp.sum(terms.w[c] * jnp.exp(jnp.sum(lf, axis=-1)), axis=-1))
+    return jnp.stack(out, axis=-1)
+
+
+def effective_sample_size(terms: VolumetricTerms, media) -> tuple[Array, Array]:
+    """Per pixel and channel `(P, 3)`: the effective sample size `(sum w f)^2 / sum (w f)^2`
+    of the records at `media`, and its value at the proposal (`f = 1`). Their ratio falls
+    from 1 as the coefficients move away from the proposal."""
+    ss = jnp.stack([jnp.broadcast_to(m.sigma_s, (3,)) for m in media])
+    st = jnp.stack([jnp.broadcast_to(m.sigma_t, (3,)) for m in media])
+    ess, ess0 = [], []
+    for c in range(3):
+        lf = _log_factor(
+            terms.n[c], terms.L[c], ss[:, c], st[:, c], terms.sigma_s0[:, c], terms.sigma_t0[:, c]
+        )
+        wf = terms.w[c] * jnp.exp(jnp.sum(lf, axis=-1))
+        ess.append(safe_div(jnp.sum(wf, -1) ** 2, jnp.sum(wf * wf, -1)))
+        ess0.append(safe_div(jnp.sum(terms.w[c], -1) ** 2, jnp.sum(terms.w[c] ** 2, -1)))
+    return jnp.stack(ess, -1), jnp.stack(ess0, -1)
+
+
+# --- sampling helpers ----------------------------------------------------------------------
+def _pcg(v):
+    """PCG hash of uint32s (Jarzynski and Olano 2020): cheap, well-mixed 32 bits."""
+    state = v * jnp.uint32(747796405) + jnp.uint32(2891336453)
+    shift = (state >> jnp.uint32(28)) + jnp.uint32(4)
+    word = ((state >> shift) ^ state) * jnp.uint32(277803737)
+    return (word >> jnp.uint32(22)) ^ word
+
+
+def _uniforms(seed, i, n: int):
+    """`n` uniform numbers in [0, 1) per walker for event `i`, from the walker's own `seed`
+    (a counter-based hash: the numbers follow the walker, whatever lane it is packed into)."""
+    c = jnp.asarray(i, jnp.uint32) * jnp.uint32(n) + jnp.arange(n, dtype=jnp.uint32)
+    h = _pcg(_pcg(c)[None, :] + seed[:, None])
+    return (h >> jnp.uint32(8)).astype(jnp.float32) * (1.0 / (1 << 24))
+
+
+def _dot(a, b):
+    return jnp.sum(a * b, axis=-1)
+
+
+def _unit(v):
+    return v * safe_div(1.0, safe_sqrt(_dot(v, v)))[..., None]
+
+
+def _around(w, cos_t, phi):
+    """The direction at polar angle `acos(cos_t)`, azimuth `phi` around unit `w`."""
+    sign = jnp.where(w[:, 2] >= 0, 1.0, -1.0).astype(w.dtype)
+    a = -1.0 / (sign + w[:, 2])
+    b = w[:, 0] * w[:, 1] * a
+    t = jnp.stack([1.0 + sign * w[:, 0] ** 2 * a, sign * b, -sign * w[:, 0]], axis=-1)
+    s = jnp.stack([b, sign + w[:, 1] ** 2 * a, -w[:, 1]], axis=-1)
+    sin_t = safe_sqrt(1.0 - cos_t * cos_t)
+    v = (sin_t * jnp.cos(phi))[:, None] * t + (sin_t * jnp.sin(phi))[:, None] * s
+    return _unit(v + cos_t[:, None] * w)
+
+
+def _hg_cos(u, g):
+    """Cosine of a Henyey-Greenstein scattering angle (with respect to the direction of
+    propagation) sampled from `u` in [0, 1)."""
+    small = jnp.abs(g) < 1e-3
+    gs = jnp.where(small, 0.5, g)
+    frac = (1.0 - gs * gs) / (1.0 - gs + 2.0 * gs * u)
+    cos_hg = (1.0 + gs * gs - frac * frac) / (2.0 * gs)
+    return jnp.clip(jnp.where(small, 1.0 - 2.0 * u, cos_hg), -1.0, 1.0)
+
+
+def _pick_light(vs: VolScene, u):
+    """Index into [area..., point..., beam...] chosen by power, and its probability."""
+    cdf = vs.light_cdf
+    L = cdf.shape[0]
+    if L == 0:
+        return jnp.zeros(u.shape, jnp.int32), jnp.ones(u.shape)
+    idx = jnp.minimum(jnp.searchsorted(cdf, u, side="right"), L - 1).astype(jnp.int32)
+    prev = jnp.where(idx > 0, cdf[jnp.maximum(idx - 1, 0)], 0.0)
+    p = cdf[idx] - prev
+    # no light has power: p = 0, and the caller's estimate is 0 / 1 instead of 0 / 0
+    return idx, jnp.where(p > 0, p, jnp.inf)
+
+
+def _occluded(vs: VolScene, o, d, t_max):
+    t, _, _ = intersect_all(vs.shapes, o, d, EPS * 0.1, jnp.inf)
+    return t < t_max
+
+
+def _area_point(la, k, u1, u2):
+    return la.corner[k] + u1[:, None] * la.edge_u[k] + u2[:, None] * la.edge_v[k]
+
+
+# --- next-event estimation -------------------------------------------------------------
+def _nee_diffuse(vs: VolScene, x, ns, ch, u):
+    """Direct light at diffuse vertices `x` (facing normal `ns`), per unit albedo / pi:
+    `int L_e cos dw`, from one light chosen by power. **Returns:** `(W,)` irradiance."""
+    la = vs.lights
+    na, npt, nb = la.n_area, la.n_point, la.n_beam
+    if na + npt + nb == 0:
+        return jnp.zeros(x.shape[0])
+    idx, p_pick = _pick_light(vs, u[:, 0])
+    E = jnp.zeros(x.shape[0])
+    if na:
+        k = jnp.minimum(idx, na - 1)
+        y = _area_point(la, k, u[:, 1], u[:, 2])
+        w = y - x
+        d2 = _dot(w, w)
+        dist = safe_sqrt(d2)
+        w = w * safe_div(1.0, dist)[:, None]
+        cos_x = _dot(w, ns)
+        cos_l = -_dot(w, la.normal[k])
+        ok = (idx < na) & (cos_x > 0) & (cos_l > 0)
+        vis = ~_occluded(vs, x + EPS * ns, w, dist * (1 - 1e-4))
+        Le = la.radiance[k, ch]
+        e = Le * la.area[k] * cos_x * cos_l * safe_div(1.0, d2)
+        E = jnp.where(ok & vis, e, E)
+    if npt:
+        k = jnp.clip(idx - na, 0, npt - 1)
+        w = la.position[k] - x
+        d2 = _dot(w, w)
+        dist = safe_sqrt(d2)
+        w = w * safe_div(1.0, dist)[:, None]
+        cos_x = _dot(w, ns)
+        ok = (idx >= na) & (idx < na + npt) & (cos_x > 0)
+        vis = ~_occluded(vs, x + EPS * ns, w, dist * (1 - 1e-4))
+        e = la.intensity[k, ch] * cos_x * safe_div(1.0, d2)
+        E = jnp.where(ok & vis, e, E)
+    if nb:
+        k = jnp.clip(idx - na - npt, 0, nb - 1)
+        d = la.beam_dir[k]
+        v = x - la.beam_origin[k]
+        along = _dot(v, d)
+        radial = safe_sqrt(_dot(v - along[:, None] * d, v - along[:, None] * d))
+        cos_x = -_dot(ns, d)
+        ok = (idx >= na + npt) & (along > 0) & (radial <= la.beam_radius[k]) & (cos_x > 0)
+        vis = ~_occluded(vs, x + EPS * ns, -d, along * (1 - 1e-4))
+        e = la.beam_power[k, ch] / (jnp.pi * la.beam_radius[k] ** 2) * cos_x
+        E = jnp.where(ok & vis, e, E)
+    return E / p_pick
+
+
+def _faces(vs: VolScene, obj):
+    """The planar faces of each walker's shape `obj`: `(c, n, e1, e2, kind, ok)`, gathered
+    per walker, or broadcast `(1, F, ...)` when the scene has one translucent shape."""
+    arrays = (vs.face_c, vs.face_n, vs.face_e1, vs.face_e2, vs.face_kind, vs.face_ok)
+    if vs.single is not None:
+        return tuple(a[vs.single][None] for a in arrays)
+    return tuple(a[obj] for a in arrays)
+
+
+def _connect_boundary(vs: VolScene, x, y, obj, eta, u_face):
+    """A refracted connection `x -> b -> y` through translucent shape `obj`'s boundary.
+
+    One planar face among those whose plane separates `x` and `y` is chosen uniformly
+    (weight: their number), or one of a sphere's refraction points (weight: their number).
+    **Returns:** dict with `b`, `nb` (outward normal at `b`), `w1`, `w2`, `d1`, `d2`,
+    `cos1`, `G_perp` (`d omega_x / dA_perp`, times the selection weight) and `ok`.
+    """
+    fc, fn, f1, f2, fk, fok = _faces(vs, obj)  # (W or 1, F, ...)
+    cand = fok & (_dot(fc - x[:, None, :], fn) > 0) & (_dot(y[:, None, :] - fc, fn) > 0)
+    n_cand = jnp.sum(cand, axis=-1)
+    pick = jnp.minimum(jnp.floor(u_face * n_cand), jnp.maximum(n_cand - 1, 0)).astype(jnp.int32)
+    rank = jnp.cumsum(cand, axis=-1) - 1
+    sel = cand & (rank == pick[:, None])  # one-hot over the faces
+    take = lambda a: jnp.sum(jnp.where(sel[..., None], a, 0.0), axis=1)  # noqa: E731
+    c, n, e1, e2 = take(fc), take(fn), take(f1), take(f2)
+    kind = jnp.sum(jnp.where(sel, fk, 0), axis=1)
+    pc = planar_connection(x, y, c, n, eta)
+    ok_p = (n_cand > 0) & pc["ok"] & in_face(pc["b"], c, e1, e2, kind)
+    out = dict(
+        b=pc["b"],
+        nb=n,
+        w1=pc["w1"],
+        w2=pc["w2"],
+        d1=pc["d1"],
+        d2=pc["d2"],
+        cos1=pc["cos1"],
+        G_perp=pc["G_perp"] * n_cand,
+        ok=ok_p,
+    )
+    if not vs.has_sphere:
+        return out
+    sph = vs.is_sphere[obj]
+    cen, rad = vs.sphere_c[obj], vs.sphere_r[obj]
+    bs, oks = sphere_connections(x, y, cen, rad, eta)  # (W, M, 3)
+    n_ok = jnp.sum(oks, axis=-1)
+    pick = jnp.minimum(jnp.floor(u_face * n_ok), jnp.maximum(n_ok - 1, 0)).astype(jnp.int32)
+    rank = jnp.cumsum(oks, axis=-1) - 1
+    j = jnp.argmax(oks & (rank == pick[:, None]), axis=-1)
+    b = jnp.take_along_axis(bs, j[:, None, None], axis=1)[:, 0]
+    nb = (b - cen) / rad[:, None]
+    w1 = _unit(b - x)
+    w2 = _unit(y - b)
+    d1 = safe_sqrt(_dot(b - x, b - x))
+    d2 = safe_sqrt(_dot(y - b, y - b))
+    G = exit_map_G(x, w1, lambda xx, ww: sphere_exit(xx, ww, cen, rad), eta, y, w2)
+    sel = lambda a, b_: jnp.where(sph.reshape((-1,) + (1,) * (a.ndim - 1)), b_, a)  # noqa: E731
+    return dict(
+        b=sel(out["b"], b),
+        nb=sel(out["nb"], nb),
+        w1=sel(out["w1"], w1),
+        w2=sel(out["w2"], w2),
+        d1=sel(out["d1"], d1),
+        d2=sel(out["d2"], d2),
+        cos1=sel(out["cos1"], _dot(w1, nb)),
+        G_perp=sel(out["G_perp"], G * n_ok),
+        ok=jnp.where(sph, n_ok > 0, out["ok"]),
+    )
+
+
+def _nee_medium(vs: VolScene, x, d, obj, ch, g, sig_s0, sig_t0, u):
+    """In-scattered radiance at medium vertices `x` (the walker arrived along `d`), from one
+    light chosen by power, through the boundary of shape `obj`.
+
+    **Returns:** `(c, dL, dn)`: the estimate at the proposal (per unit path weight), and the
+    extra length in the medium and scattering events its path adds to the walker's.
+    """
+    la = vs.lights
+    na, npt, nb = la.n_area, la.n_point, la.n_beam
+    W = x.shape[0]
+    zero = jnp.zeros(W)
+    if na + npt + nb == 0:
+        return zero, zero, zero
+    eta = vs.eta[obj]
+    idx, p_pick = _pick_light(vs, u[:, 0])
+    c_out, dL, dn = zero, zero, zero
+    if na + npt:
+        is_area = idx < na
+        ka = jnp.minimum(idx, max(na - 1, 0))
+        kp = jnp.clip(idx - na, 0, max(npt - 1, 0))
+        ya = _area_point(la, ka, u[:, 1], u[:, 2]) if na else jnp.zeros((W, 3))
+        yp = la.position[kp] if npt else jnp.zeros((W, 3))
+        y = jnp.where(is_area[:, None], ya, yp) if na and npt else (ya if na else yp)
+        con = _connect_boundary(vs, x, y, obj, eta, u[:, 3])
+        Ft = 1.0 - fresnel_reflectance(con["cos1"], 1.0 / eta)
+        vis = ~_occluded(vs, con["b"] + EPS * con["nb"], con["w2"], con["d2"] * (1 - 1e-4))
+        # a non-convex object: the inside segment must reach b first
+        if vs.all_convex:
+            inside_ok = True
+        else:
+            t_in, _, _ = intersect_all(vs.shapes, x, con["w1"], EPS * 0.1, jnp.inf)
+            inside_ok = vs.convex[obj] | (t_in >= con["d1"] * (1 - 1e-3))
+        phase = hg_phase(_dot(d, con["w1"]), g)
+        att = jnp.exp(-sig_t0 * con["d1"])
+        base = phase * Ft * att * con["G_perp"]
+        if na:
+            cos_l = -_dot(con["w2"], la.normal[ka])
+            em_a = la.radiance[ka, ch] * la.area[ka] * jnp.maximum(cos_l, 0.0)
+        else:
+            em_a = zero
+        em_p = la.intensity[kp, ch] if npt else zero
+        em = jnp.where(is_area, em_a, em_p)
+        ok = (idx < na + npt) & con["ok"] & vis & inside_ok
+        c_out = jnp.where(ok, base * em, 0.0)
+        dL = jnp.where(ok, con["d1"], 0.0)
+    if nb:
+        is_beam = idx >= na + npt
+        k = jnp.clip(idx - na - npt, 0, nb - 1)
+        db = la.beam_dir[k]
+        e1 = _unit(jnp.cross(db, jnp.where(jnp.abs(db[:, :1]) < 0.9, jnp.array([1.0, 0, 0]), jnp.array([0, 1.0, 0]))))
+        e2 = jnp.cross(db, e1)
+        rho = la.beam_radius[k] * jnp.sqrt(u[:, 4])
+        phi = 2.0 * jnp.pi * u[:, 5]
+        ob = la.beam_origin[k] + rho[:, None] * (
+            jnp.cos(phi)[:, None] * e1 + jnp.sin(phi)[:, None] * e2
+        )
+        tb, nbm, sid = intersect_all(vs.shapes, ob, db, EPS * 0.1, jnp.inf)
+        xb = ob + jnp.where(jnp.isfinite(tb), tb, 0.0)[:, None] * db
+        cos_b = -_dot(nbm, db)
+        hit = (sid == obj) & (cos_b > 0)
+        Ft_b = 1.0 - fresnel_reflectance(cos_b, eta)
+        din, ok_r = refract_dir(db, nbm, eta)
+        t_ex, _, _ = intersect_all(vs.shapes, xb - EPS * nbm, din, EPS * 0.1, jnp.inf)
+        t_max = jnp.where(jnp.isfinite(t_ex), t_ex, 0.0)
+        # equiangular sampling of the scattering point on the refracted beam, seen from x
+        delta = _dot(x - xb, din)
+        perp = x - xb - delta[:, None] * din
+        h = jnp.maximum(safe_sqrt(_dot(perp, perp)), 1e-6)
+        th_a = jnp.arctan2(-delta, h)
+        th_b = jnp.arctan2(t_max - delta, h)
+        tt = delta + h * jnp.tan(th_a + u[:, 6] * (th_b - th_a))
+        tt = jnp.clip(tt, 0.0, t_max)
+        pdf = h / ((th_b - th_a) * (h * h + (tt - delta) ** 2))
+        yb = xb + tt[:, None] * din
+        v = yb - x
+        r2 = jnp.maximum(_dot(v, v), 1e-12)
+        r = jnp.sqrt(r2)
+        w = v / r[:, None]
+        if vs.all_convex:
+            seg_ok = True
+        else:
+            t_seg, _, _ = intersect_all(vs.shapes, x, w, EPS * 0.1, jnp.inf)
+            seg_ok = vs.convex[obj] | (t_seg >= r * (1 - 1e-3))
+        ph_x = hg_phase(_dot(d, w), g)
+        ph_y = hg_phase(_dot(din, -w), g)
+        # the beam's flux inside gives actual radiance: / eta^2 for basic radiance
+        cb = (
+            ph_x
+            * la.beam_power[k, ch]
+            * Ft_b
+            / (eta * eta)
+            * sig_s0
+            * ph_y
+            * jnp.exp(-sig_t0 * (tt + r))
+            / (r2 * jnp.maximum(pdf, 1e-30))
+        )
+        okb = is_beam & hit & ok_r & (t_max > 0) & (th_b > th_a) & seg_ok
+        c_out = jnp.where(okb, cb, c_out)
+        dL = jnp.where(okb, tt + r, dL)
+        dn = jnp.where(okb, 1.0, dn)
+    return c_out / p_pick, dL, dn
+
+
+class _BeamEntry(eqx.Module):
+    """Where each beam's central ray enters a translucent shape, and the refracted beam as an
+    elliptic cylinder (exact for a flat entry surface across the beam's footprint)."""
+
+    x0: Array  # (Lb, 3) entry point
+    din: Array  # (Lb, 3) refracted direction
+    ep: Array  # (Lb, 3) cross-section axis in the plane of incidence
+    es: Array  # (Lb, 3) cross-section axis perpendicular to it
+    ap: Array  # (Lb,) semi-axes, mm
+    as_: Array
+    E_perp: Array  # (Lb, 3) flux per unit area across the refracted beam (power x F_t / area)
+    sid: Array  # (Lb,) shape entered, -1 if none
+
+
+def _beam_entry(vs: VolScene) -> _BeamEntry:
+    la = vs.lights
+    d = la.beam_dir
+    t, n, sid = intersect_all(vs.shapes, la.beam_origin, d, EPS * 0.1, jnp.inf)
+    x0 = la.beam_origin + jnp.where(jnp.isfinite(t), t, 0.0)[:, None] * d
+    sidc = jnp.maximum(sid, 0)
+    eta = vs.eta[sidc]
+    cos_i = -_dot(n, d)
+    ok = (sid >= 0) & (vs.kind[sidc] == TRANSLUCENT) & (cos_i > 0)
+    din, ok_r = refract_dir(d, n, eta)
+    cos_t = -_dot(n, din)
+    es = jnp.cross(d, n)
+    alt = jnp.cross(din, jnp.where(jnp.abs(din[:, :1]) < 0.9, jnp.array([1.0, 0, 0]), jnp.array([0, 1.0, 0])))
+    es = _unit(jnp.where((_dot(es, es) > 1e-12)[:, None], es, alt))
+    ep = jnp.cross(es, din)
+    ap = la.beam_radius * cos_t / jnp.maximum(cos_i, 1e-6)
+    as_ = la.beam_radius
+    Ft = 1.0 - fresnel_reflectance(cos_i, eta)
+    E = la.beam_power * (Ft / (jnp.pi * ap * as_))[:, None]
+    return _BeamEntry(x0, din, ep, es, ap, as_, jnp.where((ok & ok_r)[:, None], E, 0.0), jnp.where(ok & ok_r, sid, -1))
+
+
+def _beam_segment(be: _BeamEntry, vs: VolScene, o, d, seg, obj, ch, g, sig_s0, sig_t0, u):
+    """Single scattering of a beam on the walkers' medium segments `[o, o + seg d]` (those
+    that start at a specular event: scattering vertices reach beams by next-event
+    estimation): one point sampled uniformly on the segment's overlap with the refracted
+    beam, `length sigma_s0 p E_perp exp(-sigma_t0 t_beam) / eta^2` (basic radiance).
+
+    **Returns:** `(c, dL)`: the estimate per unit path weight and the length its path adds
+    (one scattering event is added by the caller)."""
+    Lb = be.x0.shape[0]
+    k = jnp.minimum(jnp.floor(u[:, 0] * Lb), Lb - 1).astype(jnp.int32)
+    q = o - be.x0[k]
+    din, ep, es = be.din[k], be.ep[k], be.es[k]
+    X0, Xd = _dot(q, ep) / be.ap[k], _dot(d, ep) / be.ap[k]
+    Y0, Yd = _dot(q, es) / be.as_[k], _dot(d, es) / be.as_[k]
+    A = Xd * Xd + Yd * Yd
+    B = X0 * Xd + Y0 * Yd
+    C = X0 * X0 + Y0 * Y0 - 1.0
+    disc = B * B - A * C
+    par = A < 1e-12
+    root = safe_sqrt(disc)
+    s1 = jnp.where(par, -jnp.inf, safe_div(-B - root, A))
+    s2 = jnp.where(par, jnp.where(C <= 0, jnp.inf, -jnp.inf), safe_div(-B + root, A))
+    s1 = jnp.where(par | (disc > 0), s1, jnp.inf)
+    # t_beam(s) = q.din + s d.din >= 0: after the beam's entry
+    qd, dd = _dot(q, din), _dot(d, din)
+    s_b = safe_div(-qd, dd)
+    lo = jnp.maximum(jnp.maximum(0.0, s1), jnp.where(dd > 0, s_b, -jnp.inf))
+    hi = jnp.minimum(jnp.minimum(seg, s2), jnp.where(dd < 0, s_b, jnp.inf))
+    hi = jnp.where((jnp.abs(dd) < 1e-12) & (qd < 0), lo, hi)
+    length = jnp.maximum(hi - lo, 0.0)
+    su = lo + u[:, 1] * length
+    tb = jnp.maximum(qd + su * dd, 0.0)
+    eta = vs.eta[jnp.maximum(obj, 0)]
+    c = (
+        length
+        * sig_s0
+        * hg_phase(-_dot(din, d), g)
+        * be.E_perp[k, ch]
+        * jnp.exp(-sig_t0 * tb)
+        / (eta * eta)
+        * Lb
+    )
+    ok = (be.sid[k] == obj) & (length > 0)
+    return jnp.where(ok, c, 0.0), jnp.where(ok, su + tb, 0.0)
+
+
+def _covered(vs: VolScene, obj, x, n):
+    """Whether the boundary point `x` (outward normal `n`) of shape `obj` is reached by the
+    refracted next-event estimator."""
+    fc, fn, _, _, _, fok = _faces(vs, obj)
+    on = (
+        fok
+        & (_dot(fn, n[:, None, :]) > 1.0 - 1e-4)
+        & (jnp.abs(_dot(x[:, None, :] - fc, fn)) < 1e-2)
+    )
+    return vs.covered_all[obj] | jnp.any(on, axis=-1)
+
+
+# --- the walk ------------------------------------------------------------------------------
+def _init_state(o, d, ch, K, Mt):
+    W = o.shape[0]
+    z = jnp.zeros(W)
+    f = jnp.zeros(W, bool)
+    return dict(
+        o=o,
+        d=d,
+        ch=ch,
+        thr=jnp.ones(W),
+        med=jnp.full(W, -1, jnp.int32),
+        obj=jnp.full(W, -1, jnp.int32),
+        n=jnp.zeros((W, Mt)),
+        L=jnp.zeros((W, Mt)),
+        touched=f,
+        skip_em=f,
+        after_scatter=f,
+        alive=jnp.ones(W, bool),
+        events=jnp.zeros(W, jnp.int32),
+        lost=f,
+        ledger=jnp.zeros((W, 5)),
+        base=z,
+        wsum=z,
+        res_n=jnp.zeros((W, K, Mt)),
+        res_L=jnp.zeros((W, K, Mt)),
+    )
+
+
+def _deposit(st, contrib, n_c, L_c, u_res):
+    """Add contributions `contrib (W,)` (at the proposal) with statistics `(n_c, L_c)`:
+    to `base` for paths that never entered a medium, else to the weighted reservoir."""
+    to_res = st["touched"] & (contrib > 0)
+    base = st["base"] + jnp.where(st["touched"], 0.0, contrib)
+    wsum = st["wsum"] + jnp.where(to_res, contrib, 0.0)
+    p = safe_div(contrib, wsum)
+    take = to_res[:, None] & (u_res < p[:, None])  # (W, K)
+    res_n = jnp.where(take[..., None], n_c[:, None, :], st["res_n"])
+    res_L = jnp.where(take[..., None], L_c[:, None, :], st["res_L"])
+    return dict(st, base=base, wsum=wsum, res_n=res_n, res_L=res_L)
+
+
+def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee: bool = True, be=None):
+    """One event for every walker: a free flight inside a medium, or a hit outside.
+    `be`: the scene's beams as they enter media (`_beam_entry`), or None without beams."""
+    o, d, ch, thr = st["o"], st["d"], st["ch"], st["thr"]
+    K = st["res_n"].shape[1]
+    alive, med, obj = st["alive"], st["med"], st["obj"]
+    W = o.shape[0]
+    Mt = vs.n_materials
+    inside = med >= 0
+    m = jnp.maximum(med, 0)
+    onehot = (jnp.arange(max(Mt, 1))[None, :] == m[:, None]) & inside[:, None]
+    onehot = onehot[:, :Mt].astype(thr.dtype)
+    if Mt:
+        sig_t0 = prop.sigma_t[m, ch]
+        sig_s0 = prop.sigma_s[m, ch]
+        g = prop.g[m, ch]
+    else:
+        sig_t0 = sig_s0 = g = jnp.ones(W)
+    t, nrm, sid = intersect_all(vs.shapes, o, d, EPS * 0.1, jnp.inf)
+    tl, rad = vs.lights.intersect(o, d, t)
+    rad_c = jnp.take_along_axis(rad, ch[:, None], axis=1)[:, 0]
+    s = -jnp.log1p(-u[:, 0]) / sig_t0
+    scatter = alive & inside & (s < t)
+    bnd = alive & inside & ~scatter & (sid >= 0)
+    leak = alive & inside & ~scatter & (sid < 0)
+    out = alive & ~inside
+    hit_light = out & (tl < t)
+    miss = out & ~hit_light & (sid < 0)
+    surf = out & ~hit_light & (sid >= 0)
+    sidc = jnp.maximum(sid, 0)
+    kind = vs.kind[sidc]
+    diffuse = surf & (kind == DIFFUSE)
+    mirror = surf & (kind == MIRROR)
+    transl = surf & (kind == TRANSLUCENT)
+    t_hit = jnp.where(jnp.isfinite(t), t, 0.0)
+    x_t = o + t_hit[:, None] * d
+    x_s = o + jnp.where(scatter, s, 0.0)[:, None] * d
+    cos = -_dot(d, nrm)  # > 0 when hitting the outside of a surface
+    ns = jnp.where((cos >= 0)[:, None], nrm, -nrm)
+
+    # scattering in a medium: count the event, estimate the light it sends back
+    thr_s = thr * jnp.where(scatter, sig_s0 / sig_t0, 1.0)
+    n_new = st["n"] + jnp.where(scatter[:, None], onehot, 0.0)
+    L_new = st["L"] + onehot * jnp.where(scatter, s, jnp.where(bnd, t_hit, 0.0))[:, None]
+    c_med, dL, dn = jax.lax.cond(
+        jnp.any(scatter) & nee,
+        lambda: _nee_medium(vs, x_s, d, jnp.maximum(obj, 0), ch, g, sig_s0, sig_t0, u[:, 1:8]),
+        lambda: (jnp.zeros(W, thr.dtype),) * 3,
+    )
+    # diffuse surfaces: direct light
+    E = jax.lax.cond(
+        jnp.any(diffuse),
+        lambda: _nee_diffuse(vs, x_t, ns, ch, u[:, 1:4]),
+        lambda: jnp.zeros(W, thr.dtype),
+    )
+    alb = jnp.take_along_axis(vs.albedo[sidc], ch[:, None], axis=1)[:, 0]
+    contrib = jnp.where(scatter, thr_s * c_med, 0.0)
+    contrib = contrib + jnp.where(diffuse, thr * alb / jnp.pi * E, 0.0)
+    contrib = contrib + jnp.where(hit_light & ~st["skip_em"], thr * rad_c, 0.0)
+    contrib = contrib + jnp.where(miss, thr * vs.env[ch], 0.0)
+    n_c = n_new + jnp.where(scatter, dn, 0.0)[:, None] * onehot
+    L_c = L_new + jnp.where(scatter, dL, 0.0)[:, None] * onehot
+    new = _deposit(dict(st, n=n_new, L=L_new), contrib, n_c, L_c, u_res[:, :K])
+    if be is not None:  # beams: their single scattering on segments that start specular
+        seg = jnp.where(scatter, s, t_hit)
+        c_b, dL_b = _beam_segment(be, vs, o, d, seg, obj, ch, g, sig_s0, sig_t0, u[:, 12:14])
+        on = (scatter | bnd) & ~st["after_scatter"]
+        c_b = jnp.where(on, thr * c_b, 0.0)
+        new = _deposit(new, c_b, st["n"] + onehot, st["L"] + dL_b[:, None] * onehot, u_res[:, K:])
+
+    # next directions
+    d_hg = _around(d, _hg_cos(u[:, 8], g), 2.0 * jnp.pi * u[:, 9])
+    d_cos = _around(ns, jnp.sqrt(1.0 - u[:, 8]), 2.0 * jnp.pi * u[:, 9])
+    d_mir = d + 2.0 * cos[:, None] * nrm  # reflection about the surface
+    eta_s = vs.eta[sidc]
+    # boundary from inside: Fresnel into the outside (relative index 1 / eta)
+    F_in = fresnel_reflectance(cos, 1.0 / eta_s)
+    refl_in = bnd & (u[:, 10] < F_in)
+    exit_ = bnd & ~refl_in
+    d_out, _ = refract_dir(d, -nrm, 1.0 / eta_s)
+    # translucent surface from outside
+    F_out = fresnel_reflectance(cos, eta_s)
+    front = transl & (cos > 0)
+    refl_out = front & (u[:, 10] < F_out)
+    enter = front & ~refl_out
+    through = transl & ~front  # grazing / numerical: pass on
+    d_in, _ = refract_dir(d, nrm, eta_s)
+
+    spec = mirror | refl_out | refl_in
+    d_next = jnp.where(scatter[:, None], d_hg, d)
+    d_next = jnp.where(diffuse[:, None], d_cos, d_next)
+    d_next = jnp.where(spec[:, None], d_mir, d_next)
+    d_next = jnp.where(exit_[:, None], d_out, d_next)
+    d_next = jnp.where(enter[:, None], d_in, d_next)
+    o_next = jnp.where(scatter[:, None], x_s, o)
+    o_next = jnp.where((diffuse | mirror | refl_out)[:, None], x_t + EPS * ns, o_next)
+    o_next = jnp.where((refl_in | enter)[:, None], x_t - EPS * nrm, o_next)
+    o_next = jnp.where(exit_[:, None], x_t + EPS * nrm, o_next)
+    o_next = jnp.where(through[:, None], x_t + EPS * d, o_next)
+
+    refl = jnp.take_along_axis(vs.reflectance[sidc], ch[:, None], axis=1)[:, 0]
+    thr_n = jnp.where(diffuse, thr * alb, thr_s)
+    thr_n = jnp.where(mirror, thr * refl, thr_n)
+    mat_s = vs.mat[sidc]
+    med_n = jnp.where(enter, mat_s, jnp.where(exit_, -1, med))
+    obj_n = jnp.where(enter, sid, jnp.where(exit_, -1, obj))
+    covered = _covered(vs, jnp.maximum(obj, 0), x_t, nrm)
+    skip = jnp.where(diffuse, True, st["skip_em"])
+    skip = jnp.where(mirror | refl_out | enter | through, False, skip)
+    skip = jnp.where(exit_, st["after_scatter"] & covered & nee, skip)
+    after = jnp.where(scatter, True, jnp.where(refl_in | exit_ | enter, False, st["after_scatter"]))
+    events = st["events"] + alive.astype(jnp.int32)
+    # Russian roulette on the coefficient-independent weight, after scattering or diffuse
+    rr = (scatter | diffuse) & (events >= RR_MIN_EVENTS) & (thr_n < RR_WEIGHT)
+    survive = u[:, 11] * RR_WEIGHT < thr_n
+    thr_rr = jnp.where(rr, jnp.where(survive, RR_WEIGHT, 0.0), thr_n)
+    cut = alive & ((events >= MAX_EVENTS) | leak)
+    dead = hit_light | miss | cut | (rr & ~survive)
+    dead = dead | (diffuse & (alb <= 0)) | (mirror & (refl <= 0))
+    # where each walker's weight goes: the columns of `ledger` add up to its start weight
+    ledger = st["ledger"] + jnp.stack(
+        [
+            jnp.where(miss, thr, 0.0),
+            jnp.where(hit_light, thr, 0.0),
+            jnp.where(scatter | diffuse | mirror, thr - thr_n, 0.0),
+            thr_n - thr_rr,
+            jnp.where(cut & ~hit_light & ~miss, thr_rr, 0.0),
+        ],
+        axis=1,
+    )
+    thr_n = thr_rr
+    return dict(
+        new,
+        o=o_next,
+        d=d_next,
+        thr=thr_n,
+        med=med_n,
+        obj=obj_n,
+        touched=st["touched"] | enter,
+        skip_em=skip,
+        after_scatter=after,
+        alive=alive & ~dead,
+        events=events,
+        lost=st["lost"] | leak,
+        ledger=ledger,
+    )
+
+
+def _walk(vs: VolScene, prop: Proposal, st: dict, K: int, nee: bool = True) -> dict:
+    """Run every walker of `st` to its end.
+
+    Most walkers end within a few events (on the background, a light, or by roulette) while
+    a few wander inside a medium for thousands: the alive ones are packed into the narrowest
+    of `_WIDTHS` that holds them and stepped `_PHASE` events at a time, so the cost follows
+    the walkers that are still going, not the block. Each walker draws its own random
+    numbers, so the result does not depend on the packing.
+    """
+    W = st["alive"].shape[0]
+    widths = sorted({max(-(-W // k), 1) for k in _WIDTHS})
+    be = _beam_entry(vs) if vs.lights.n_beam else None
+
+    def phase(width):
+        def run(carry):
+            i, st = carry
+            if width == W:
+                sub = st
+            else:
+                idx = jnp.nonzero(st["alive"], size=width, fill_value=W)[0]
+                sub = {
+                    f: jnp.take(v, idx, axis=0, mode="fill", fill_value=0) for f, v in st.items()
+                }
+
+            def body(j, sub):
+                u = _uniforms(sub["seed"], i + j, _NU + 2 * K).astype(sub["thr"].dtype)
+                return _step(vs, prop, sub, u[:, :_NU], u[:, _NU:], nee, be)
+
+            sub = jax.lax.fori_loop(0, _PHASE, body, sub)
+            if width == W:
+                return i + _PHASE, sub
+            return i + _PHASE, {f: v.at[idx].set(sub[f], mode="drop") for f, v in st.items()}
+
+        return run
+
+    def cond(carry):
+        i, st = carry
+        return jnp.any(st["alive"]) & (i < MAX_EVENTS)
+
+    def body(carry):
+        n_alive = jnp.sum(carry[1]["alive"])
+        branch = jnp.searchsorted(jnp.asarray(widths), n_alive, side="left")
+        return jax.lax.switch(branch, [phase(w) for w in widths], carry)
+
+    _, st = jax.lax.while_loop(cond, body, (jnp.int32(0), st))
+    return st
+
+
+def trace_block(
+    vs: VolScene,
+    prop: Proposal,
+    camera,
+    pixels: Int[Array, " P"],
+    key: PRNGKeyArray,
+    spp: int,
+    K: int = 4,
+    nee: bool = True,
+) -> tuple[Float[Array, "P 3"], VolumetricTerms, WalkStats]:
+    """Walk `spp` camera samples x 3 channels for each of `pixels` (flat indices).
+
+    **Returns:** `(base (P, 3), terms, stats)`: the coefficient-independent radiance (paths
+    that never entered a medium), the re-weightable records of the rest, and diagnostics.
+    Pixel radiance at the proposal is `base + shade_terms(terms, media)`. `nee=False` turns
+    off next-event estimation inside media (light then reaches them through random exits
+    only: the same expectation, more noise; for tests).
+    """
+    P = pixels.shape[0]
+    Mt = vs.n_materials
+    k_cam, k_walk = jax.random.split(key)
+    o, d = camera_rays(camera, pixels, stratified_2d(k_cam, spp, (P,)))  # (P, S, 3)
+    o = jnp.repeat(o.reshape(P * spp, 3), 3, axis=0)
+    d = jnp.repeat(d.reshape(P * spp, 3), 3, axis=0)
+    W = P * spp * 3
+    ch = jnp.tile(jnp.arange(3, dtype=jnp.int32), P * spp)
+    st = _init_state(o, d, ch, K, Mt)
+
+    st["seed"] = jax.random.bits(k_walk, (W,), jnp.uint32)
+    st = _walk(vs, prop, st, K, nee)
+    base = st["base"].reshape(P, spp, 3).mean(axis=1)
+    wrec = (st["wsum"] / (K * spp)).reshape(P, spp, 3)
+    w = jnp.broadcast_to(wrec[:, :, None, :], (P, spp, K, 3)).reshape(P, spp * K, 3)
+    n = st["res_n"].reshape(P, spp, 3, K, Mt).transpose(2, 0, 1, 3, 4).reshape(3, P, spp * K, Mt)
+    L = st["res_L"].reshape(P, spp, 3, K, Mt).transpose(2, 0, 1, 3, 4).reshape(3, P, spp * K, Mt)
+    terms = VolumetricTerms(jnp.moveaxis(w, -1, 0), n, L, prop.sigma_s, prop.sigma_t)
+    stats = WalkStats(
+        events=jnp.sum(st["events"]),
+        longest=jnp.max(st["events"]),
+        truncated=jnp.sum(st["events"] >= MAX_EVENTS),
+        lost=jnp.sum(st["lost"]),
+        **{k: jnp.sum(st["ledger"][:, i]) for i, k in enumerate(_LEDGER)},
+    )
+    return base, terms, stats
