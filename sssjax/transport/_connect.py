@@ -42,7 +42,7 @@ __all__ = [
 ]
 
 FACE_PARALLELOGRAM, FACE_DISC, FACE_TRIANGLE = 0, 1, 2
-_NEWTON_STEPS = 6
+_NEWTON_STEPS = 10
 
 
 def _dot(a, b):
@@ -96,27 +96,38 @@ def planar_connection(
     D = safe_sqrt(_dot(dv, dv))
     e = dv * safe_div(1.0, D)[..., None]
 
-    def f_and_df(r):
-        a1 = safe_sqrt(r * r + h1 * h1)
-        q = D - r
-        a2 = safe_sqrt(q * q + h2 * h2)
-        f = eta * r / a1 - q / a2
-        df = eta * h1 * h1 / a1**3 + h2 * h2 / a2**3
-        return f, df
+    # Snell: eta sin1 = sin2. Solve for tau = tan of the larger of the two angles (side P,
+    # the optically thinner one), whose range [0, D / h_P] has no pole: h_P tau +
+    # h_Q tan(theta_Q) = D with sin(theta_Q) = sin(theta_P) / m, m = max(eta, 1/eta) >= 1.
+    # The left side increases with tau: Newton safeguarded by bisection of the bracket.
+    thin_out = eta >= 1.0
+    hP, hQ = jnp.where(thin_out, h2, h1), jnp.where(thin_out, h1, h2)
+    m = jnp.where(thin_out, eta, 1.0 / eta)
 
-    # paraxial start, then Newton safeguarded by the bracket [lo, hi] (f is increasing)
-    r = D * h1 / (h1 + eta * h2)
-    lo, hi = jnp.zeros_like(D), D
+    def parts(tau):
+        root = safe_sqrt(1.0 + tau * tau)
+        sP = tau / root
+        sQ = sP / m
+        cQ = safe_sqrt(1.0 - sQ * sQ)
+        g = hP * tau + hQ * sQ / cQ - D
+        dg = hP + hQ / (cQ**3 * m * root**3)
+        return g, dg, sP, sQ
+
+    lo, hi = jnp.zeros_like(D), D / hP
+    tau = D / (hP + hQ / m)  # paraxial
+    tau = jnp.clip(tau, lo, hi)
     for _ in range(_NEWTON_STEPS):
-        f, df = f_and_df(r)
-        lo = jnp.where(f < 0, r, lo)
-        hi = jnp.where(f >= 0, r, hi)
-        r_new = r - f / df
-        r = jnp.where((r_new >= lo) & (r_new <= hi), r_new, 0.5 * (lo + hi))
-    a1 = safe_sqrt(r * r + h1 * h1)
-    q = D - r
-    a2 = safe_sqrt(q * q + h2 * h2)
-    cos1, cos2 = h1 / a1, h2 / a2
+        g, dg, _, _ = parts(tau)
+        lo = jnp.where(g <= 0, tau, lo)
+        hi = jnp.where(g >= 0, tau, hi)
+        new = tau - g / dg
+        tau = jnp.where((new >= lo) & (new <= hi), new, 0.5 * (lo + hi))
+    _, _, sP, sQ = parts(tau)
+    sin1, sin2 = jnp.where(thin_out, sQ, sP), jnp.where(thin_out, sP, sQ)
+    cos1, cos2 = safe_sqrt(1.0 - sin1 * sin1), safe_sqrt(1.0 - sin2 * sin2)
+    r = jnp.clip(h1 * sin1 / cos1, 0.0, D)
+    a1 = h1 / cos1
+    a2 = h2 / cos2
     b = xp + r[..., None] * e
     w1 = _unit(b - x)
     w2 = _unit(y - b)

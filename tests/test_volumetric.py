@@ -1,0 +1,327 @@
+"""The volumetric transport against closed forms, an independent photon tracer and itself
+with its next-event estimation switched off (an independent estimator of the same
+integral)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import sssjax
+from sssjax import Medium
+from sssjax.dipole import fresnel_reflectance, hg_phase
+from sssjax.transport import _connect as C
+from sssjax.transport import volumetric as V
+from sssjax.transport._volscene import VolScene
+
+from radiance_reference import radiance_profile
+
+_FNS: dict = {}
+
+
+def walk(scene, spp, seed, media=None, nee=True, K=4, block=1024):
+    """`(image (H, W, 3), base, terms, stats)` of a volumetric trace at the scene's media
+    (or `media`, a list in the scene's translucent order) as the proposal."""
+    vs = VolScene.build(scene)
+    media = list(scene.media().values()) if media is None else list(media)
+    prop = V.Proposal.from_media(media)
+    cam = scene.camera
+    key = (id(scene), spp, nee, K)
+    if key not in _FNS:
+        _FNS[key] = jax.jit(
+            lambda vs, prop, pix, k: V.trace_block(vs, prop, cam, pix, k, spp, K=K, nee=nee)
+        )
+    f = _FNS[key]
+    n = cam.width * cam.height
+    bases, terms, stats = [], [], []
+    for b0 in range(0, n, block):
+        pix = jnp.minimum(jnp.arange(b0, b0 + block, dtype=jnp.int32), n - 1)
+        b, t, s = f(vs, prop, pix, jax.random.fold_in(jax.random.key(seed), b0))
+        m = min(block, n - b0)
+        bases.append(np.asarray(b)[:m])
+        terms.append(t.rows(jnp.arange(m)))
+        stats.append(s)
+    base = np.concatenate(bases)
+    tm = V.VolumetricTerms(
+        *(jnp.concatenate([getattr(t, f) for t in terms], axis=1) for f in ("w", "n", "L")),
+        terms[0].sigma_s0,
+        terms[0].sigma_t0,
+    )
+    img = base + np.asarray(V.shade_terms(tm, media))
+    total = {k: sum(float(getattr(s, k)) for s in stats) for k in V._LEDGER}
+    total["walkers"] = len(stats) * block * spp * 3  # padded blocks included
+    total["lost"] = sum(int(s.lost) for s in stats)
+    return img.reshape(cam.height, cam.width, 3), base, tm, total
+
+
+# --- refracted connections ------------------------------------------------------------------
+def test_planar_connection_obeys_snell_and_its_G_matches_the_exit_map(x64):
+    rng = np.random.default_rng(0)
+    N = 500
+    n = np.tile([0.0, 0.0, 1.0], (N, 1))
+    x = np.c_[rng.uniform(-5, 5, (N, 2)), -rng.uniform(0.01, 5, N)]
+    y = np.c_[rng.uniform(-20, 20, (N, 2)), rng.uniform(0.5, 30, N)]
+    for eta in (1.0, 1.3, 1.6):
+        e = np.full(N, eta)
+        r = C.planar_connection(*(jnp.asarray(a) for a in (x, y, np.zeros((N, 3)), n, e)))
+        w1, w2 = np.asarray(r["w1"]), np.asarray(r["w2"])
+        t1, t2 = w1 - w1[:, 2:] * n, w2 - w2[:, 2:] * n
+        np.testing.assert_allclose(eta * t1, t2, atol=1e-10)  # Snell, in one plane
+        np.testing.assert_allclose(np.asarray(r["b"])[:, 2], 0.0, atol=1e-12)
+
+        def plane_exit(xx, ww):
+            b = xx + (-xx[..., 2] / ww[..., 2])[..., None] * ww
+            return b, jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0]), b.shape)
+
+        G = C.exit_map_G(jnp.asarray(x), r["w1"], plane_exit, jnp.asarray(e), jnp.asarray(y), r["w2"])
+        np.testing.assert_allclose(np.asarray(G), np.asarray(r["G_perp"]), rtol=1e-8)
+        if eta == 1.0:  # a straight line: 1 / distance^2
+            d2 = np.sum((x - y) ** 2, axis=1)
+            np.testing.assert_allclose(np.asarray(r["G_perp"]) * d2, 1.0, rtol=1e-10)
+
+
+def test_sphere_connections_are_refracted_paths_and_G_gives_the_lights_solid_angle(x64):
+    """Sum over refraction points of G over the light's area (light samples) equals the solid
+    angle of the directions at x whose exit rays hit the light (direction samples)."""
+    R, eta = 10.0, 1.4
+    cen = np.zeros(3)
+    rng = np.random.default_rng(1)
+    corner, eu, ev = np.array([-6.0, 14.0, -4.0]), np.array([12.0, 0, 0]), np.array([0, 0, 8.0])
+    nl = np.array([0.0, -1.0, 0.0])
+    for x in (np.array([0.0, 2.0, 1.0]), np.array([3.0, -6.0, 2.0]), np.array([-1.0, 8.5, 0.0])):
+        # light samples -> refraction points -> sum G dA
+        M = 20000
+        uv = rng.random((M, 2))
+        y = corner + uv[:, :1] * eu + uv[:, 1:] * ev
+        xs = np.broadcast_to(x, (M, 3))
+        b, ok = C.sphere_connections(
+            jnp.asarray(xs), jnp.asarray(y), jnp.zeros((M, 3)), jnp.full(M, R), jnp.full(M, eta)
+        )
+        total = np.zeros(M)
+        for k in range(b.shape[1]):
+            bk = np.asarray(b[:, k])
+            w1 = (bk - xs) / np.linalg.norm(bk - xs, axis=1)[:, None]
+            w2 = (y - bk) / np.linalg.norm(y - bk, axis=1)[:, None]
+            # Snell at every root found
+            nb = bk / R
+            tt1 = w1 - np.sum(w1 * nb, 1)[:, None] * nb
+            tt2 = w2 - np.sum(w2 * nb, 1)[:, None] * nb
+            okk = np.asarray(ok[:, k])
+            assert not okk.any() or np.max(np.abs(eta * tt1 - tt2)[okk]) < 1e-3
+            G = C.exit_map_G(
+                jnp.asarray(xs),
+                jnp.asarray(w1),
+                lambda xx, ww: C.sphere_exit(xx, ww, jnp.zeros(3), jnp.full(M, R)),
+                jnp.full(M, eta),
+                jnp.asarray(y),
+                jnp.broadcast_to(jnp.asarray(nl), (M, 3)),
+            )
+            total += np.where(okk, np.asarray(G), 0.0)
+        area = np.linalg.norm(np.cross(eu, ev))
+        omega_light = total.mean() * area
+        se_light = total.std() * area / np.sqrt(M)
+        # direction samples -> exit -> refract -> does it hit the light?
+        Nd = 400000
+        w = rng.normal(size=(Nd, 3))
+        w /= np.linalg.norm(w, axis=1)[:, None]
+        bx, nb = C.sphere_exit(jnp.asarray(np.broadcast_to(x, (Nd, 3))), jnp.asarray(w), jnp.zeros(3), jnp.full(Nd, R))
+        w2, okr = C.refract_dir(jnp.asarray(w), -nb, jnp.full(Nd, 1.0 / eta))
+        bx, w2 = np.asarray(bx), np.asarray(w2)
+        t = (corner[1] - bx[:, 1]) / w2[:, 1]
+        p = bx + t[:, None] * w2 - corner
+        a, c = p @ eu / (eu @ eu), p @ ev / (ev @ ev)
+        hit = np.asarray(okr) & (t > 0) & (a >= 0) & (a <= 1) & (c >= 0) & (c <= 1)
+        omega_dir = 4 * np.pi * hit.mean()
+        se_dir = 4 * np.pi * np.sqrt(hit.mean() * (1 - hit.mean()) / Nd)
+        assert abs(omega_light - omega_dir) < 4 * np.hypot(se_light, se_dir) + 1e-3 * omega_dir
+
+
+# --- whole images -----------------------------------------------------------------------------
+def _furnace(sigma_a, sigma_s, g, eta, width=16):
+    return sssjax.load_scene(
+        {
+            "camera": {"origin": [0, 0, 60], "target": [0, 0, 0], "fov": 38, "width": width, "height": width},
+            "render": {"spp": 4, "background": 1.0},
+            "materials": {
+                "m": {"type": "translucent", "sigma_a": sigma_a, "sigma_s": sigma_s, "g": g, "eta": eta},
+                "w": {"type": "diffuse", "albedo": 1.0},
+            },
+            "shapes": [
+                {"type": "sphere", "material": "m", "radius": 7.0, "translate": [-9, 0, 0]},
+                {"type": "cube", "material": "m", "size": 9.0, "translate": [8, 6, 0], "rotate": [20, 30, 0]},
+                {"type": "cylinder", "material": "m", "radius": 4.0, "height": 8.0, "translate": [8, -12, 0]},
+                {"type": "sphere", "material": "w", "radius": 3.0, "translate": [0, -8, 5]},
+            ],
+            "lights": [],
+        }
+    )
+
+
+@pytest.mark.parametrize("g,eta", [(0.0, 1.5), (0.7, 1.2)])
+def test_white_furnace_non_absorbing_objects_are_invisible(g, eta):
+    """sigma_a = 0 (any sigma_s, chromatic), albedo-1 diffuse, uniform environment: every
+    pixel is the environment's radiance; every walker's weight escapes (bookkeeping)."""
+    sc = _furnace(0.0, [0.3, 1.0, 3.0], g, eta)
+    img, _, _, tot = walk(sc, 4, 0)
+    np.testing.assert_allclose(img, 1.0, atol=2e-5)
+    assert abs(tot["escaped"] - tot["walkers"]) < 1e-4 * tot["walkers"]
+    assert tot["lost"] == 0
+
+
+def test_absorbing_sphere_in_a_uniform_environment_matches_its_closed_form():
+    """A clear absorbing sphere (sigma_s = 0) seen orthographically in a uniform environment:
+    `L = F + (1 - F)^2 e^-tau / (1 - F e^-tau)`, `tau = sigma_a 2 R cos(theta_t)` (all
+    internal chords are equal), averaged over each pixel; the re-weighted trace at other
+    sigma_a against the closed form there; the walkers' weight bookkeeping closes."""
+    R, eta, N, SPP = 10.0, 1.5, 12, 256
+    sa = np.array([0.02, 0.08, 0.3])
+    sc = sssjax.load_scene(
+        {
+            "camera": {"origin": [0, 0, 50], "target": [0, 0, 0], "projection": "orthographic",
+                       "view_width": 2.2 * R, "width": N, "height": N},
+            "render": {"spp": SPP, "background": 1.0},
+            "materials": {"m": {"type": "translucent", "sigma_a": sa.tolist(), "sigma_s": 0.0, "eta": eta}},
+            "shapes": [{"type": "sphere", "material": "m", "radius": R}],
+            "lights": [],
+        }
+    )
+    img, base, terms, tot = walk(sc, SPP, 3, block=N * N)
+    assert abs(sum(tot[k] for k in V._LEDGER) - tot["walkers"]) < 1e-4 * tot["walkers"]
+    # closed form on a 16 x 16 grid per pixel
+    s = 16
+    px = 2.2 * R / N
+    c = (np.arange(N * s) + 0.5) / s * px - 1.1 * R
+    X, Y = np.meshgrid(c, c)
+    rho = np.hypot(X, Y)
+
+    def closed(sigma_a):
+        inside = rho < R
+        cos_i = np.sqrt(np.clip(1 - (rho / R) ** 2, 0, 1))
+        sin_t = np.sqrt(1 - cos_i**2) / eta
+        cos_t = np.sqrt(1 - sin_t**2)
+        F = np.asarray(fresnel_reflectance(cos_i, eta))
+        out = []
+        for a in sigma_a:
+            e = np.exp(-a * 2 * R * cos_t)
+            den = np.where(inside, 1 - F * e, 1.0)
+            L = np.where(inside, F + (1 - F) ** 2 * e / den, 1.0)
+            out.append(L.reshape(N, s, N, s).mean(axis=(1, 3)))
+        return np.stack(out, axis=-1)
+
+    def check(image, sigma_a):
+        want = closed(sigma_a)
+        # per-sample values lie in [0, 1]: standard error <= 0.5 / sqrt(spp) per pixel
+        se = 0.5 / np.sqrt(SPP)
+        assert np.max(np.abs(image - want)) < 4.5 * se
+        # the sphere's mean, far more precise
+        centre = (np.arange(N) + 0.5) * px - 1.1 * R
+        m = np.hypot(*np.meshgrid(centre, centre)) < R - px  # pixels wholly on the sphere
+        np.testing.assert_allclose(image[m].mean(0), want[m].mean(0), atol=4 * se / np.sqrt(m.sum()))
+
+    check(img, sa)
+    other = [Medium(sa * 3.0, 0.0, 0.0, eta)]
+    check(base.reshape(N, N, 3) + np.asarray(V.shade_terms(terms, other)).reshape(N, N, 3), sa * 3)
+
+
+def _lit_scene(width=24, height=16, spp=16, extra_lights=()):
+    return sssjax.load_scene(
+        {
+            "camera": {"origin": [0, 30, 60], "target": [0, 5, 0], "fov": 35, "width": width, "height": height},
+            "render": {"spp": spp},
+            "lights": [
+                {"type": "area", "corner": [-20, 40, -20], "edge_u": [40, 0, 0], "edge_v": [0, 0, 40], "radiance": 3.0},
+                *extra_lights,
+            ],
+            "materials": {
+                "m": {"type": "translucent", "sigma_a": [0.02, 0.05, 0.2], "sigma_s": [0.5, 1.0, 2.0], "eta": 1.4},
+                "k": {"type": "translucent", "sigma_a": [0.1, 0.02, 0.01], "sigma_s": [1.0, 0.7, 0.4], "g": 0.3, "eta": 1.3},
+                "floor": {"type": "diffuse", "albedo": 0.5},
+            },
+            "shapes": [
+                {"type": "sphere", "material": "m", "radius": 6.0, "translate": [-14, 6, 0]},
+                {"type": "cube", "material": "k", "size": 10.0, "translate": [0, 5, 0], "rotate": [0, 30, 0]},
+                {"type": "cylinder", "material": "m", "radius": 5.0, "height": 10.0, "translate": [14, 0, 0]},
+                {"type": "quadmesh", "material": "floor", "vertices": [[-100, 0, -100], [-100, 0, 100], [100, 0, 100], [100, 0, -100]], "faces": [[0, 1, 2, 3]]},
+            ],
+        }
+    )
+
+
+def _blocks(imgs, b=4):
+    n, H, W, _ = imgs.shape
+    return imgs.reshape(n, H // b, b, W // b, b, 3).mean(axis=(2, 4))
+
+
+@pytest.mark.slow
+def test_next_event_estimation_through_the_boundary_agrees_with_random_exits():
+    """Refracted next-event estimation (planar faces, a sphere) with its exclusion of the
+    paths it covers, against the same walks counting every light hit of random exits: two
+    estimators of one integral, chromatic media, several objects, a floor in their light."""
+    sc = _lit_scene()
+    runs = {nee: np.stack([walk(sc, 16, 10 * s + nee, nee=nee)[0] for s in range(4)]) for nee in (True, False)}
+    A, B = _blocks(runs[True]), _blocks(runs[False])
+    ma, mb = A.mean(0), B.mean(0)
+    se = np.sqrt(A.var(0, ddof=1) / len(A) + B.var(0, ddof=1) / len(B))
+    z = (ma - mb) / np.maximum(se, 1e-6 * np.abs(ma))
+    assert np.mean(z**2) < 2.0, np.mean(z**2)  # chi^2 per block (72 blocks x channels)
+    assert np.max(np.abs(z)) < 5.0
+    assert abs(ma.mean() / mb.mean() - 1) < 0.03
+
+
+def _slab(sigma_a, sigma_s, g, eta, n=48, view=8.0, radius=0.05, big=True):
+    size = [200, 100, 200] if big else [200, 1.0, 200]
+    return sssjax.load_scene(
+        {
+            "camera": {"origin": [0, 50, 0], "target": [0, 0, 0], "up": [0, 0, -1], "projection": "orthographic",
+                       "view_width": view, "width": n, "height": n},
+            "render": {"spp": 16},
+            "lights": [{"type": "beam", "position": [0, 50, 0], "direction": [0, -1, 0], "radius": radius, "power": 1.0}],
+            "materials": {"m": {"type": "translucent", "sigma_a": sigma_a, "sigma_s": sigma_s, "g": g, "eta": eta}},
+            "shapes": [{"type": "cube", "material": "m", "size": size, "translate": [0, -size[1] / 2, 0]}],
+        }
+    )
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sigma_a,sigma_s,g,eta", [(0.1, 0.9, 0.0, 1.3), (0.05, 1.5, 0.6, 1.5)])
+def test_thick_slab_under_a_beam_reproduces_the_independent_radiance_profile(sigma_a, sigma_s, g, eta):
+    """Semi-infinite limit: a 100 mm slab under a 0.05 mm beam seen orthographically from
+    above, against an independent photon tracer (tests/radiance_reference.py) bin by bin,
+    beyond the beam (r >= 0.2 mm; the beam's own single scattering is checked against its
+    closed form by the thin-slab test)."""
+    sc = _slab(sigma_a, sigma_s, g, eta)
+    img = walk(sc, 16, 5, block=768)[0]
+    N, view = 48, 8.0
+    px = view / N
+    yy, xx = np.mgrid[0:N, 0:N]
+    r = np.hypot((xx + 0.5) * px - view / 2, (yy + 0.5) * px - view / 2).ravel()
+    edges = np.array([0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.4, 1.8, 2.4, 3.0, 3.6])
+    ref = radiance_profile(sigma_a, sigma_s, g, eta, edges, n_photons=400_000, seed=1)
+    v = img.reshape(-1, 3).mean(1)  # a grey medium: the three channels are independent walks
+    z = []
+    for i in range(1, len(edges) - 1):
+        m = (r >= edges[i]) & (r < edges[i + 1])
+        mean, se = v[m].mean(), v[m].std(ddof=1) / np.sqrt(m.sum())
+        z.append((mean - ref["L"][i]) / np.hypot(se, ref["L_se"][i]))
+    z = np.array(z)
+    assert np.mean(z**2) < 3.0, z
+    assert np.max(np.abs(z)) < 4.5, z
+
+
+def test_index_matched_thin_slab_single_scattering_matches_its_closed_form():
+    """eta = 1, a 1 mm slab under a wide beam, seen from above: the single-scattering
+    records (n = 1) against `E sigma_s p(-1) (1 - exp(-2 sigma_t d)) / (2 sigma_t)`."""
+    sa, ss, g, d = 0.3, [0.4, 1.0, 2.5], 0.3, 1.0
+    sc = _slab(sa, ss, g, 1.0, n=16, view=4.0, radius=20.0, big=False)
+    _, _, terms, _ = walk(sc, 16, 7, block=256)
+    rec = np.asarray(terms.n)[..., 0] == 1
+    single = (np.asarray(terms.w) * rec).sum(-1)  # (3, P)
+    E = 1.0 / (np.pi * 20.0**2)
+    st = sa + np.array(ss)
+    want = E * np.array(ss) * float(hg_phase(-1.0, g)) * -np.expm1(-2 * st * d) / (2 * st)
+    got = single.mean(1)
+    se = single.std(1, ddof=1) / np.sqrt(single.shape[1])
+    assert np.all(np.abs(got - want) < 4 * se + 1e-3 * want), (got, want, se)
+    assert np.all(se < 0.05 * want)
