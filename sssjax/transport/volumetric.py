@@ -262,6 +262,27 @@ def _occluded(vs: VolScene, o, d, t_max):
     return t < t_max
 
 
+def _intersect_walkers(vs: VolScene, o, d, inside_obj, self_sid):
+    """Nearest hit for walkers: those inside a medium (`inside_obj >= 0`) see only their own
+    object; a ray that leaves a surface (`self_sid >= 0`, origin on it) ignores that shape
+    within `EPS` and accepts the others from `-EPS` on, so that surfaces in contact (a cube
+    standing on a floor) are met where they touch rather than skipped."""
+    W = o.shape[0]
+    t_best = jnp.full(W, jnp.inf, o.dtype)
+    n_best = jnp.zeros((W, 3), o.dtype)
+    sid = jnp.full(W, -1, jnp.int32)
+    after = self_sid >= 0
+    for i, shape in enumerate(vs.shapes):
+        t_min = jnp.where(self_sid == i, EPS, jnp.where(after, -EPS, EPS * 0.1))
+        t_min = jnp.where((inside_obj >= 0) & (inside_obj != i), jnp.inf, t_min)
+        t, n = shape.intersect(o, d, t_min, jnp.inf)
+        closer = t < t_best
+        t_best = jnp.where(closer, t, t_best)
+        n_best = jnp.where(closer[:, None], n, n_best)
+        sid = jnp.where(closer, i, sid)
+    return t_best, n_best, sid
+
+
 def _area_point(la, k, u1, u2):
     return la.corner[k] + u1[:, None] * la.edge_u[k] + u2[:, None] * la.edge_v[k]
 
@@ -602,6 +623,7 @@ def _init_state(o, d, ch, K, Mt):
         events=jnp.zeros(W, jnp.int32),
         lost=f,
         ledger=jnp.zeros((W, 5)),
+        self_sid=jnp.full(W, -1, jnp.int32),
         base=z,
         wsum=z,
         res_n=jnp.zeros((W, K, Mt)),
@@ -640,7 +662,7 @@ def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee: bool = True, be=None)
         g = prop.g[m, ch]
     else:
         sig_t0 = sig_s0 = g = jnp.ones(W)
-    t, nrm, sid = intersect_all(vs.shapes, o, d, EPS * 0.1, jnp.inf)
+    t, nrm, sid = _intersect_walkers(vs, o, d, obj, st["self_sid"])
     tl, rad = vs.lights.intersect(o, d, t)
     rad_c = jnp.take_along_axis(rad, ch[:, None], axis=1)[:, 0]
     s = -jnp.log1p(-u[:, 0]) / sig_t0
@@ -717,10 +739,9 @@ def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee: bool = True, be=None)
     d_next = jnp.where(exit_[:, None], d_out, d_next)
     d_next = jnp.where(enter[:, None], d_in, d_next)
     o_next = jnp.where(scatter[:, None], x_s, o)
-    o_next = jnp.where((diffuse | mirror | refl_out)[:, None], x_t + EPS * ns, o_next)
-    o_next = jnp.where((refl_in | enter)[:, None], x_t - EPS * nrm, o_next)
-    o_next = jnp.where(exit_[:, None], x_t + EPS * nrm, o_next)
-    o_next = jnp.where(through[:, None], x_t + EPS * d, o_next)
+    # surface events leave from the surface point itself (`_intersect_walkers` skips it)
+    o_next = jnp.where((diffuse | mirror | transl | bnd)[:, None], x_t, o_next)
+    self_n = jnp.where(diffuse | mirror | transl | bnd, sid, -1)
 
     refl = jnp.take_along_axis(vs.reflectance[sidc], ch[:, None], axis=1)[:, 0]
     thr_n = jnp.where(diffuse, thr * alb, thr_s)
@@ -767,6 +788,7 @@ def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee: bool = True, be=None)
         events=events,
         lost=st["lost"] | leak,
         ledger=ledger,
+        self_sid=self_n,
     )
 
 
