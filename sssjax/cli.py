@@ -347,6 +347,12 @@ def _cmd_preview(args: argparse.Namespace) -> int:
     return 0
 
 
+_NO_CACHE_HELP = (
+    "compile from scratch: do not read or write the compilation cache "
+    "(default: SSSJAX_CACHE_DIR, else ~/.cache/sssjax/jax)"
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from ._version import __version__
 
@@ -355,7 +361,13 @@ def build_parser() -> argparse.ArgumentParser:
         description="Differentiable subsurface scattering (units: mm, mm^-1).",
     )
     p.add_argument("--version", action="version", version=f"sssjax {__version__}")
+    p.add_argument("--no-cache", action="store_true", help=_NO_CACHE_HELP)
     sub = p.add_subparsers(dest="command", required=True)
+    # options every compiling command takes (after the command name, too)
+    compiling = argparse.ArgumentParser(add_help=False)
+    compiling.add_argument(
+        "--no-cache", action="store_true", default=argparse.SUPPRESS, help=_NO_CACHE_HELP
+    )
 
     s = sub.add_parser("materials", help="print the measured media with derived quantities")
     s.add_argument(
@@ -366,14 +378,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.set_defaults(func=_cmd_materials)
 
-    s = sub.add_parser("demo", help="the `make demo` job")
+    s = sub.add_parser("demo", parents=[compiling], help="the `make demo` job")
     s.add_argument("--out", default="out", help="output folder (default: out)")
     s.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
     s.add_argument("--size", type=int, default=0, help="override the image size (pixels)")
     s.add_argument("--spp", type=int, default=0, help="override samples per pixel")
     s.set_defaults(func=_cmd_demo)
 
-    s = sub.add_parser("render", help="ray trace a scene file to EXR (linear) and/or PNG (sRGB)")
+    s = sub.add_parser(
+        "render",
+        parents=[compiling],
+        help="ray trace a scene file to EXR (linear) and/or PNG (sRGB)",
+    )
     s.add_argument("scene", help="scene TOML file")
     s.add_argument(
         "-o",
@@ -394,13 +410,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.set_defaults(func=_cmd_render)
 
-    s = sub.add_parser("fit", help="fit scattering coefficients to a target (a fit file)")
+    s = sub.add_parser(
+        "fit", parents=[compiling], help="fit scattering coefficients to a target (a fit file)"
+    )
     s.add_argument("fit_file", help="fit TOML file (see fits/)")
     s.add_argument("-o", "--output", help="output folder (default: the fit file's 'output')")
     s.add_argument("--force", action="store_true", help="overwrite an existing result")
     s.set_defaults(func=_cmd_fit)
 
-    s = sub.add_parser("raytree", help="the rays behind one pixel: JSON and a picture")
+    s = sub.add_parser(
+        "raytree", parents=[compiling], help="the rays behind one pixel: JSON and a picture"
+    )
     s.add_argument("scene", help="scene TOML file")
     s.add_argument("--pixel", type=int, nargs=2, metavar=("X", "Y"), required=True)
     s.add_argument("-o", "--output", help="tree JSON (default: out/SCENE_raytree_X_Y.json)")
@@ -412,6 +432,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser(
         "measure",
+        parents=[compiling],
         help="fit sigma_a, sigmap_s (1/mm) to the radial profile of a beam-lit image "
         "(Jensen's measurement step)",
     )
@@ -439,7 +460,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--force", action="store_true", help="overwrite an existing result")
     s.set_defaults(func=_cmd_measure)
 
-    s = sub.add_parser("preview", help="interactive previewer of a scene in the browser (viser)")
+    s = sub.add_parser(
+        "preview",
+        parents=[compiling],
+        help="interactive previewer of a scene in the browser (viser)",
+    )
     s.add_argument("scene", help="scene TOML file")
     s.add_argument("--port", type=int, default=8080, help="port (default 8080; 0: any free port)")
     s.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
@@ -450,6 +475,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.no_cache:
+        from ._cache import disable_cache
+
+        disable_cache()
     try:
         return int(args.func(args) or 0)
     except (UserError, ValueError, FileNotFoundError, OSError) as e:
