@@ -48,15 +48,6 @@ def _cmd_materials(args: argparse.Namespace) -> int:
     return 0
 
 
-def _scene_inputs(scene) -> list[Path]:
-    """Files the user wrote that a render must never overwrite."""
-    paths = [Path(scene.path)] if scene.path else []
-    for raw in (scene.source or {}).get("shapes", []):
-        if isinstance(raw, dict) and isinstance(raw.get("file"), str):
-            paths.append(Path(scene.path or ".").parent / raw["file"])
-    return paths
-
-
 def render_to_files(
     scene,
     outputs: list[Path],
@@ -69,6 +60,7 @@ def render_to_files(
     """Render `scene` with a progress bar and write every path in `outputs`."""
     import time
 
+    from ._files import scene_inputs
     from ._version import __version__
     from .imageio import write_image
     from .render import render
@@ -107,7 +99,7 @@ def render_to_files(
             }
             for b in beams
         ]
-    protect = _scene_inputs(scene)
+    protect = scene_inputs(scene)
     written = []
     for out in outputs:
         written.append(
@@ -127,6 +119,7 @@ def render_to_files(
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
+    from ._files import check_outputs, scene_inputs
     from .scene import load_scene
 
     scene = load_scene(args.scene)
@@ -148,10 +141,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
         Path("out") / f"{stem}.png",
         Path("out") / f"{stem}.exr",
     ]
-    inputs = {p.resolve() for p in _scene_inputs(scene)}
-    for out in outputs:
-        if out.resolve() in inputs:
-            raise UserError(f"refusing to overwrite the input file {out} (choose another -o)")
+    check_outputs(outputs, force=args.force, inputs=scene_inputs(scene))
     for path in render_to_files(
         scene, outputs, seed=args.seed, exposure=args.exposure, tonemap=args.tonemap
     ):
@@ -160,6 +150,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
+    from ._files import check_outputs, scene_inputs
     from .fit import fit, load_fit_file
     from .imageio import read_image, write_image
     from .plots import convergence_plot, fit_triptych
@@ -169,8 +160,10 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     out = Path(args.output) if args.output else job.output
     if job.target is not None and out.resolve() == job.target.resolve().parent:
         raise UserError(f"refusing to write results into the target's folder {out}")
-    if (out / "result.json").exists() and not args.force:
-        raise UserError(f"{out / 'result.json'} exists; use --force to overwrite or -o DIR")
+    names = ("result.json", "fit.exr", "fit.png", "triptych.png", "convergence.png")
+    inputs = [Path(args.fit_file), *scene_inputs(job.scene)]
+    inputs += [job.target] if job.target is not None else []
+    check_outputs([out / n for n in names], force=args.force, inputs=inputs)
     scene = job.scene
     if job.target is None:
         print(f"rendering a synthetic target (seed {job.synthetic_seed}) from the scene's media")
@@ -197,11 +190,16 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 def _cmd_measure(args: argparse.Namespace) -> int:
     import json
 
+    from ._files import check_outputs, write_text
     from .imageio import read_image, read_metadata
     from .measure import find_center, fit_profile, image_to_reflectance, radial_profile
     from .plots import measurement_plot
 
     path = Path(args.image)
+    out = Path(args.output) if args.output else Path("out") / f"measure-{path.stem}"
+    if out.resolve() == path.resolve().parent:
+        raise UserError(f"refusing to write results into the image's folder {out}")
+    check_outputs([out / "measure.json", out / "profile.png"], force=args.force, inputs=[path])
     image = read_image(path)
     meta = read_metadata(path)
     if not np.all(np.isfinite(image)):
@@ -239,11 +237,6 @@ def _cmd_measure(args: argparse.Namespace) -> int:
             f"{prof.r.max():.3g} mm): lower --r-min or give a larger image"
         )
     res = fit_profile(prof, eta, r_min=args.r_min, free_scale=free, model=args.model)
-    out = Path(args.output) if args.output else Path("out") / f"measure-{path.stem}"
-    if out.resolve() == path.resolve().parent:
-        raise UserError(f"refusing to write results into the image's folder {out}")
-    if (out / "measure.json").exists() and not args.force:
-        raise UserError(f"{out / 'measure.json'} exists; use --force to overwrite or -o DIR")
     print(
         f"{path}: {w}x{h} px, {pixel:.4g} mm/px, centre ({center[0]:.1f}, {center[1]:.1f}) px, "
         f"eta {eta:g}, r {args.r_min:g}..{prof.r.max():.1f} mm, model {args.model}, "
@@ -287,16 +280,19 @@ def _cmd_measure(args: argparse.Namespace) -> int:
         "steps": res.steps,
         "converged": res.converged,
     }
-    (out / "measure.json").write_text(json.dumps(result, indent=2))
+    write_text(out / "measure.json", json.dumps(result, indent=2))
     print(f"wrote {(out / 'measure.json').resolve()} and {plot.resolve()}")
     return 0 if all(res.converged) else 1
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
+    from ._files import check_outputs
     from .plots import plot_profiles
     from .scene import load_scene
 
     out = Path(args.out)
+    names = ("rd_profiles.png", "marble_cube.png", "marble_cube.exr")
+    check_outputs([out / n for n in names], force=args.force)
     print(materials_table())
     path = plot_profiles(
         ["marble", "skimmilk", "ketchup", "skin1", "wholemilk", "apple"], out / "rd_profiles.png"
@@ -368,6 +364,11 @@ def build_parser() -> argparse.ArgumentParser:
     compiling.add_argument(
         "--no-cache", action="store_true", default=argparse.SUPPRESS, help=_NO_CACHE_HELP
     )
+    # ... and every command that writes files: one overwrite rule (sssjax/_files.py)
+    writing = argparse.ArgumentParser(add_help=False)
+    writing.add_argument(
+        "--force", action="store_true", help="overwrite existing outputs (default: refuse)"
+    )
 
     s = sub.add_parser("materials", help="print the measured media with derived quantities")
     s.add_argument(
@@ -378,7 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.set_defaults(func=_cmd_materials)
 
-    s = sub.add_parser("demo", parents=[compiling], help="the `make demo` job")
+    s = sub.add_parser("demo", parents=[compiling, writing], help="the `make demo` job")
     s.add_argument("--out", default="out", help="output folder (default: out)")
     s.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
     s.add_argument("--size", type=int, default=0, help="override the image size (pixels)")
@@ -387,7 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser(
         "render",
-        parents=[compiling],
+        parents=[compiling, writing],
         help="ray trace a scene file to EXR (linear) and/or PNG (sRGB)",
     )
     s.add_argument("scene", help="scene TOML file")
@@ -411,15 +412,18 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=_cmd_render)
 
     s = sub.add_parser(
-        "fit", parents=[compiling], help="fit scattering coefficients to a target (a fit file)"
+        "fit",
+        parents=[compiling, writing],
+        help="fit scattering coefficients to a target (a fit file)",
     )
     s.add_argument("fit_file", help="fit TOML file (see fits/)")
     s.add_argument("-o", "--output", help="output folder (default: the fit file's 'output')")
-    s.add_argument("--force", action="store_true", help="overwrite an existing result")
     s.set_defaults(func=_cmd_fit)
 
     s = sub.add_parser(
-        "raytree", parents=[compiling], help="the rays behind one pixel: JSON and a picture"
+        "raytree",
+        parents=[compiling, writing],
+        help="the rays behind one pixel: JSON and a picture",
     )
     s.add_argument("scene", help="scene TOML file")
     s.add_argument("--pixel", type=int, nargs=2, metavar=("X", "Y"), required=True)
@@ -427,12 +431,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--png", help="picture (default: out/SCENE_raytree_X_Y.png)")
     s.add_argument("--seed", type=int, help="random seed of the render (default: the scene's)")
     s.add_argument("--image", help="backdrop image (e.g. the render's EXR; default: quick render)")
-    s.add_argument("--force", action="store_true", help="overwrite existing outputs")
     s.set_defaults(func=_cmd_raytree)
 
     s = sub.add_parser(
         "measure",
-        parents=[compiling],
+        parents=[compiling, writing],
         help="fit sigma_a, sigmap_s (1/mm) to the radial profile of a beam-lit image "
         "(Jensen's measurement step)",
     )
@@ -457,7 +460,6 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--incidence", type=float, default=0.0, help="beam angle from normal, deg")
     s.add_argument("--view-angle", type=float, default=0.0, help="camera angle from normal")
     s.add_argument("-o", "--output", help="output folder (default: out/measure-IMAGE)")
-    s.add_argument("--force", action="store_true", help="overwrite an existing result")
     s.set_defaults(func=_cmd_measure)
 
     s = sub.add_parser(

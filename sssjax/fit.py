@@ -28,6 +28,7 @@ import numpy as np
 import optimistix as optx
 from scipy.ndimage import binary_dilation
 
+from ._files import write_text
 from ._numerics import safe_sqrt
 from ._solvers import NormalGaussNewton, NormalLevenbergMarquardt
 from .media import Medium
@@ -118,7 +119,7 @@ class FitResult:
         d["units"] = "coefficients in 1/mm"
         text = json.dumps(d, indent=2)
         if path is not None:
-            Path(path).write_text(text)
+            write_text(path, text)  # atomic (sssjax/_files.py)
         return text
 
     def summary(self) -> str:
