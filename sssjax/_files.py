@@ -81,6 +81,11 @@ def check_outputs(
                 raise ValueError(f"the output {out} is named twice")
         if out.is_dir():
             raise ValueError(f"the output {out} is a folder")
+        for parent in out.absolute().parents:
+            if parent.exists():
+                if not parent.is_dir():
+                    raise ValueError(f"cannot write {out}: {parent} is a file, not a folder")
+                break
     existing = [str(p) for p in outs if p.exists()]
     if existing and not force:
         also = f" and {', '.join(existing[1:])}" if len(existing) > 1 else ""

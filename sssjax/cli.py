@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -118,6 +119,28 @@ def render_to_files(
     return written
 
 
+def _check_image_outputs(scene, outputs: list[Path], exposure: float) -> None:
+    """What `write_image` would refuse after the render, refused before it: unknown
+    extensions, a non-finite exposure, too little memory or disk."""
+    import math
+
+    from ._budget import check_disk, check_memory
+    from .imageio import DISPLAY_EXTENSIONS, FLOAT_EXTENSIONS
+
+    known = FLOAT_EXTENSIONS + DISPLAY_EXTENSIONS
+    for out in outputs:
+        if out.suffix.lower() not in known:
+            raise UserError(
+                f"{out}: unknown image extension {out.suffix or '(none)'!r}; "
+                f"expected one of {', '.join(known)}"
+            )
+    if not math.isfinite(exposure):
+        raise UserError(f"--exposure must be finite, got {exposure:g}")
+    png = any(o.suffix.lower() in DISPLAY_EXTENSIONS for o in outputs)
+    check_memory(scene, png=png)
+    check_disk(outputs, scene.camera.width, scene.camera.height)
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
     from ._files import check_outputs, scene_inputs
     from .scene import load_scene
@@ -135,6 +158,8 @@ def _cmd_render(args: argparse.Namespace) -> int:
     for k, v in kw.items():
         if k in ("spp", "width", "height") and v < 1:
             raise UserError(f"--{k} must be >= 1, got {v}")
+    if args.seed is not None and args.seed < 0:
+        raise UserError(f"--seed must be >= 0, got {args.seed}")
     scene = scene.with_settings(**kw) if kw else scene
     stem = Path(args.scene).stem
     outputs = [Path(o) for o in args.output] or [
@@ -142,6 +167,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
         Path("out") / f"{stem}.exr",
     ]
     check_outputs(outputs, force=args.force, inputs=scene_inputs(scene))
+    _check_image_outputs(scene, outputs, args.exposure)
     for path in render_to_files(
         scene, outputs, seed=args.seed, exposure=args.exposure, tonemap=args.tonemap
     ):
@@ -151,7 +177,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 def _cmd_fit(args: argparse.Namespace) -> int:
     from ._files import check_outputs, scene_inputs
-    from .fit import fit, load_fit_file
+    from .fit import FitError, fit, load_fit_file
     from .imageio import read_image, write_image
     from .plots import convergence_plot, fit_triptych
     from .render import render
@@ -169,8 +195,13 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         print(f"rendering a synthetic target (seed {job.synthetic_seed}) from the scene's media")
         target = render(scene, job.synthetic_seed)
     else:
-        target = read_image(job.target) if job.target.exists() else job.target
-    res = fit(scene, target, **job.fit_kwargs(), progress=True)
+        target = job.target  # `fit` reads it, naming the file in its errors
+    try:
+        res = fit(scene, target, **job.fit_kwargs(), progress=True)
+    except FitError as e:  # what the fit file asked for: name it
+        raise UserError(f"{job.path}: {e}") from None
+    if job.target is not None:
+        target = read_image(job.target)
     out.mkdir(parents=True, exist_ok=True)
     fitted = render(res.apply(scene), job.seed) * res.exposure
     write_image(out / "fit.exr", fitted)
@@ -187,6 +218,29 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     return 0 if res.converged else 1
 
 
+def _check_measure_flags(args: argparse.Namespace) -> None:
+    """The measure command's numbers, checked before the image is read."""
+    import math
+
+    def finite(flag, v):
+        if v is not None and not math.isfinite(v):
+            raise UserError(f"{flag} must be finite, got {v:g}")
+
+    for flag, v in (("--r-min", args.r_min), ("--r-max", args.r_max), ("--power", args.power)):
+        finite(flag, v)
+    for v in args.center or ():
+        finite("--center", v)
+    if args.r_min < 0:
+        raise UserError(f"--r-min must be >= 0 mm, got {args.r_min:g}")
+    if args.r_max is not None and not args.r_max > args.r_min:
+        raise UserError(f"--r-max must be > --r-min ({args.r_min:g} mm), got {args.r_max:g}")
+    if args.power is not None and not args.power > 0:
+        raise UserError(f"--power must be > 0 W, got {args.power:g}")
+    for flag, v in (("--incidence", args.incidence), ("--view-angle", args.view_angle)):
+        if not -90 < v < 90:
+            raise UserError(f"{flag} must be between -90 and 90 degrees (exclusive), got {v:g}")
+
+
 def _cmd_measure(args: argparse.Namespace) -> int:
     import json
 
@@ -195,6 +249,7 @@ def _cmd_measure(args: argparse.Namespace) -> int:
     from .measure import find_center, fit_profile, image_to_reflectance, radial_profile
     from .plots import measurement_plot
 
+    _check_measure_flags(args)
     path = Path(args.image)
     out = Path(args.output) if args.output else Path("out") / f"measure-{path.stem}"
     if out.resolve() == path.resolve().parent:
@@ -209,6 +264,8 @@ def _cmd_measure(args: argparse.Namespace) -> int:
     pixel = args.pixel_size if args.pixel_size is not None else meta.get("pixel_size_mm")
     if pixel is None:
         raise UserError(f"{path}: no pixel size in the image metadata: give --pixel-size MM")
+    if pixel == float("inf"):
+        raise UserError(f"--pixel-size must be finite, got {pixel:g}")
     if not pixel > 0:
         raise UserError(f"--pixel-size must be > 0 mm, got {pixel:g}")
     media = meta.get("media") or {}
@@ -216,6 +273,8 @@ def _cmd_measure(args: argparse.Namespace) -> int:
     if eta is None:
         etas = {m.get("eta") for m in media.values()} if isinstance(media, dict) else set()
         eta = etas.pop() if len(etas) == 1 else 1.3
+    if eta == float("inf"):
+        raise UserError(f"--eta must be finite, got {eta:g}")
     if not eta > 0:
         raise UserError(f"--eta must be > 0, got {eta:g}")
     power = args.power
@@ -290,6 +349,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from .plots import plot_profiles
     from .scene import load_scene
 
+    for flag, v in (("--size", args.size), ("--spp", args.spp)):
+        if v < 0:
+            raise UserError(f"{flag} must be >= 1 (or 0: the scene's), got {v}")
     out = Path(args.out)
     names = ("rd_profiles.png", "marble_cube.png", "marble_cube.exr")
     check_outputs([out / n for n in names], force=args.force)
@@ -306,10 +368,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         scene = scene.with_settings(width=args.size, height=args.size)
     if args.spp:
         scene = scene.with_settings(spp=args.spp)
+    outputs = [out / "marble_cube.png", out / "marble_cube.exr"]
+    _check_image_outputs(scene, outputs, args.exposure)
     print(f"\nrendering {scene_path} (compiles first; about a minute on 2 cores) ...")
     for p in render_to_files(
         scene,
-        [out / "marble_cube.png", out / "marble_cube.exr"],
+        outputs,
         seed=None,
         exposure=args.exposure,
         tonemap="clip",
@@ -474,6 +538,12 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings as `sssjax: warning: ...`, one line (not Python's file:line and source)."""
+    text = " ".join(str(message).split())
+    print(f"sssjax: warning: {text}", file=sys.stderr if file is None else file, flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -482,7 +552,9 @@ def main(argv: list[str] | None = None) -> int:
 
         disable_cache()
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            warnings.showwarning = _one_line_warning
+            return int(args.func(args) or 0)
     except (UserError, ValueError, FileNotFoundError, OSError) as e:
         print(f"sssjax: error: {e}", file=sys.stderr)
         return 2

@@ -29,6 +29,7 @@ import optimistix as optx
 from scipy.ndimage import binary_dilation
 
 from ._files import write_text
+from ._fitfile import check_fit_file
 from ._numerics import safe_sqrt
 from ._solvers import NormalGaussNewton, NormalLevenbergMarquardt
 from .media import Medium
@@ -1068,6 +1069,7 @@ def load_fit_file(path: str | Path) -> FitJob:
                 raise FitError(f"{path}: {where}{k}: unknown key{hint}")
 
     unknown(d, _FIT_KEYS, "")
+    check_fit_file(path, d, FitError)  # types and ranges, one line naming table and key
     if "scene" not in d:
         raise FitError(f"{path}: scene: missing required key")
     if ("target" in d) == ("synthetic" in d):
@@ -1077,7 +1079,7 @@ def load_fit_file(path: str | Path) -> FitJob:
     settings = d.get("settings", {})
     try:
         scene = scene.with_settings(**settings) if settings else scene
-    except TypeError as e:
+    except (TypeError, ValueError) as e:
         raise FitError(f"{path}: [settings]: {e}") from None
     solver = d.get("solver", {})
     unknown(solver, _SOLVER_KEYS, "[solver] ")

@@ -692,6 +692,8 @@ def raytree_files(
     inputs = [Path(scene_path)] + ([Path(image_path)] if image_path else [])
     inputs += scene_inputs(scene)
     check_outputs([json_path, png_path], force=force, inputs=inputs)
+    if image_path is not None and not Path(image_path).is_file():
+        raise FileNotFoundError(f"image not found: {image_path}")  # before the tracing
     if png_path.suffix.lower() != ".png":
         raise ValueError(f"--png {png_path}: expected a .png file")
     seed = scene.render.seed if seed is None else seed

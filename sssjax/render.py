@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ._budget import check_memory
 from .media import Medium
 from .scene import Scene
 from .shade import shade_image, shade_sss
@@ -68,6 +69,7 @@ class Renderer:
     """
 
     def __init__(self, scene: Scene, devices=None):
+        check_memory(scene)  # one line before allocating, for a render that cannot fit
         self.scene = scene
         self.tracer = SceneTracer(scene)
         self.devices = list(devices) if devices is not None else jax.devices()
