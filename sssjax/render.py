@@ -290,6 +290,7 @@ def render(
     key=None,
     media: Mapping[str, Medium] | None = None,
     *,
+    seed: int | None = None,
     progress: bool = False,
     devices=None,
 ) -> np.ndarray:
@@ -298,7 +299,8 @@ def render(
     **Arguments:**
 
     - `scene`: from `load_scene`. Lengths in mm, coefficients in mm^-1.
-    - `key`: a `jax.random` key or integer seed (default: the scene's `render.seed`).
+    - `key`: a `jax.random` key or integer seed (default: the scene's `render.seed`);
+      `seed=` is the same, by name (give one of them).
     - `media`: override the translucent materials' media (dict by material name).
     - `progress`: print a progress bar over tiles to stderr.
     - `devices`: JAX devices to shard tiles over (default: all).
@@ -307,6 +309,10 @@ def render(
     Under `jax.grad` / `jax.jacfwd` with respect to `media` it returns a JAX array
     (`shade_image(trace(scene, key), media)`: the trace is fixed, the shading differentiated).
     """
+    if seed is not None:
+        if key is not None:
+            raise TypeError("render: give the seed as `key` or as `seed=`, not both")
+        key = seed
     r = renderer_for(scene, devices)
     m = dict(scene.media())
     if media:
