@@ -31,6 +31,7 @@ from scipy.ndimage import binary_dilation
 from ._files import write_text
 from ._fitfile import check_fit_file
 from ._numerics import safe_sqrt
+from ._progress import Progress
 from ._solvers import NormalGaussNewton, NormalLevenbergMarquardt
 from .media import Medium
 from .render import as_key, renderer_for
@@ -786,8 +787,8 @@ def _solve(
     y = y0
     loss0 = float(_loss(residuals, y0, args))
     history = [{"step": 0, "loss": loss0, "params": _values(y0, tanh_idx).tolist()}]
-    if progress:
-        _progress_line(0, loss0, names, _values(y0, tanh_idx))
+    bar = Progress(max_steps, "fitting", progress, unit="steps", every_line=True)
+    _progress_line(bar, 0, loss0, names, _values(y0, tanh_idx))
     result = optx.RESULTS.max_steps_reached
     stalled = False
     n = 0
@@ -795,8 +796,7 @@ def _solve(
         y, state, done, res, lval = _step(slv, fn, residuals, y, args, options, state)
         lval = float(lval)
         history.append({"step": n, "loss": lval, "params": _values(y, tanh_idx).tolist()})
-        if progress:
-            _progress_line(n, lval, names, _values(y, tanh_idx))
+        _progress_line(bar, n, lval, names, _values(y, tanh_idx))
         if bool(done):
             result = res
             break
@@ -810,6 +810,7 @@ def _solve(
                 result = optx.RESULTS.successful
                 stalled = True
                 break
+    bar.close()
     converged = result == optx.RESULTS.successful
     status = (
         "successful"
@@ -980,11 +981,12 @@ def _step(slv, fn, residuals, y, args, options, state):
     return y, state, done, res, state.f_info.as_min()
 
 
-def _progress_line(step: int, loss: float, names: list[str], vals: np.ndarray) -> None:
+def _progress_line(bar, step: int, loss: float, names: list[str], vals: np.ndarray) -> None:
+    """A step on the bar (a terminal) or as a line of its own (a file or pipe)."""
     # the material name is dropped (one material in most fits); a light keeps its prefix
     short = [n if n.startswith("lights.") else n.split(".", 1)[-1] for n in names]
     shown = "  ".join(f"{n}={v:.4g}" for n, v in zip(short, vals, strict=True))
-    print(f"step {step:3d}  loss {loss:.6g}  {shown}", file=sys.stderr, flush=True)
+    bar.update(step, line=f"step {step:3d}  loss {loss:.6g}  {shown}", loss=loss)
 
 
 # --- fit files (`sssjax fit FIT.toml`) -------------------------------------------------

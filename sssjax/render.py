@@ -18,6 +18,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._budget import check_memory
+from ._progress import Progress
 from .media import Medium
 from .scene import Scene
 from .shade import shade_image, shade_sss
@@ -133,7 +134,7 @@ class Renderer:
         eta = jnp.asarray(self.tracer.eta_for() if eta is None else eta, dtype=float)
         gain = self.tracer.gain_for(gain)
         k_tiles = jax.random.fold_in(key, 1)
-        bar = _Progress(self.n_blocks, progress_label or "", progress_label is not None)
+        bar = Progress(self.n_blocks, progress_label or "", progress_label is not None)
         step = max(CHUNK_TILES, self.D) // self.D * self.D
         for c0 in range(0, self.n_blocks, step):
             pix_l, base_l, slot_l = [], [], []
