@@ -170,3 +170,11 @@ def test_image_estimate_bounds_the_writers_peak(tmp_path, ext):
     tracemalloc.stop()
     per_px = _budget.BYTES_PER_PIXEL_PNG if ext == "png" else _budget.BYTES_PER_PIXEL_EXR
     assert 0.7 * per_px * h * w <= peak <= 1.05 * per_px * h * w + 1e5
+
+
+def test_render_takes_the_seed_by_name():
+    scene = load_scene(DATA / "tiny_scene.toml")
+    np.testing.assert_array_equal(sssjax.render(scene, seed=3), sssjax.render(scene, 3))
+    assert not np.array_equal(sssjax.render(scene, seed=3), sssjax.render(scene, seed=4))
+    with pytest.raises(TypeError, match="not both"):
+        sssjax.render(scene, 3, seed=3)
