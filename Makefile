@@ -13,8 +13,9 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev]'
 	@touch $(STAMP)
 
+# out/ is the demo's own folder (`make clean` removes it): a second `make demo` replaces it
 demo: $(STAMP)
-	$(VENV)/bin/sssjax demo --out $(OUT)
+	$(VENV)/bin/sssjax demo --out $(OUT) --force
 
 # The previewer's browser test needs Debian's chromium (CI runs this as root).
 test: $(STAMP)

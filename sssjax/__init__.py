@@ -11,9 +11,12 @@ Public API:
 - `imageio`: `read_image` / `write_image` through OpenImageIO.
 - `raytree`: every ray the renderer casts for one pixel (`RayTree`).
 - `fit`: recover `sigma_a`, `sigma_s` from a target image (trace once, shade per step).
+- `enable_cache`, `disable_cache`, `cache_dir`: the persistent compilation cache, on from
+  import (see `sssjax._cache`; `SSSJAX_CACHE_DIR` moves it, `SSSJAX_CACHE_DIR=off` stops it).
 """
 
-from . import dipole, imageio
+from . import _cache, dipole, imageio
+from ._cache import cache_dir, disable_cache, enable_cache
 from ._version import __version__
 from .fit import FitResult, fit
 from .media import PRESETS, Medium, preset, preset_names
@@ -43,4 +46,10 @@ __all__ = [
     "Transport",
     "fit",
     "FitResult",
+    "enable_cache",
+    "disable_cache",
+    "cache_dir",
 ]
+
+# last, so that nothing compiled during the imports above is in the cache's way
+_cache.enable_cache()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -48,15 +49,6 @@ def _cmd_materials(args: argparse.Namespace) -> int:
     return 0
 
 
-def _scene_inputs(scene) -> list[Path]:
-    """Files the user wrote that a render must never overwrite."""
-    paths = [Path(scene.path)] if scene.path else []
-    for raw in (scene.source or {}).get("shapes", []):
-        if isinstance(raw, dict) and isinstance(raw.get("file"), str):
-            paths.append(Path(scene.path or ".").parent / raw["file"])
-    return paths
-
-
 def render_to_files(
     scene,
     outputs: list[Path],
@@ -69,6 +61,7 @@ def render_to_files(
     """Render `scene` with a progress bar and write every path in `outputs`."""
     import time
 
+    from ._files import scene_inputs
     from ._version import __version__
     from .imageio import write_image
     from .render import render
@@ -107,7 +100,7 @@ def render_to_files(
             }
             for b in beams
         ]
-    protect = _scene_inputs(scene)
+    protect = scene_inputs(scene)
     written = []
     for out in outputs:
         written.append(
@@ -126,7 +119,30 @@ def render_to_files(
     return written
 
 
+def _check_image_outputs(scene, outputs: list[Path], exposure: float) -> None:
+    """What `write_image` would refuse after the render, refused before it: unknown
+    extensions, a non-finite exposure, too little memory or disk."""
+    import math
+
+    from ._budget import check_disk, check_memory
+    from .imageio import DISPLAY_EXTENSIONS, FLOAT_EXTENSIONS
+
+    known = FLOAT_EXTENSIONS + DISPLAY_EXTENSIONS
+    for out in outputs:
+        if out.suffix.lower() not in known:
+            raise UserError(
+                f"{out}: unknown image extension {out.suffix or '(none)'!r}; "
+                f"expected one of {', '.join(known)}"
+            )
+    if not math.isfinite(exposure):
+        raise UserError(f"--exposure must be finite, got {exposure:g}")
+    png = any(o.suffix.lower() in DISPLAY_EXTENSIONS for o in outputs)
+    check_memory(scene, png=png)
+    check_disk(outputs, scene.camera.width, scene.camera.height)
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
+    from ._files import check_outputs, scene_inputs
     from .scene import load_scene
 
     scene = load_scene(args.scene)
@@ -142,16 +158,16 @@ def _cmd_render(args: argparse.Namespace) -> int:
     for k, v in kw.items():
         if k in ("spp", "width", "height") and v < 1:
             raise UserError(f"--{k} must be >= 1, got {v}")
+    if args.seed is not None and args.seed < 0:
+        raise UserError(f"--seed must be >= 0, got {args.seed}")
     scene = scene.with_settings(**kw) if kw else scene
     stem = Path(args.scene).stem
     outputs = [Path(o) for o in args.output] or [
         Path("out") / f"{stem}.png",
         Path("out") / f"{stem}.exr",
     ]
-    inputs = {p.resolve() for p in _scene_inputs(scene)}
-    for out in outputs:
-        if out.resolve() in inputs:
-            raise UserError(f"refusing to overwrite the input file {out} (choose another -o)")
+    check_outputs(outputs, force=args.force, inputs=scene_inputs(scene))
+    _check_image_outputs(scene, outputs, args.exposure)
     for path in render_to_files(
         scene, outputs, seed=args.seed, exposure=args.exposure, tonemap=args.tonemap
     ):
@@ -160,7 +176,8 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
-    from .fit import fit, load_fit_file
+    from ._files import check_outputs, scene_inputs
+    from .fit import FitError, fit, load_fit_file
     from .imageio import read_image, write_image
     from .plots import convergence_plot, fit_triptych
     from .render import render
@@ -169,15 +186,22 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     out = Path(args.output) if args.output else job.output
     if job.target is not None and out.resolve() == job.target.resolve().parent:
         raise UserError(f"refusing to write results into the target's folder {out}")
-    if (out / "result.json").exists() and not args.force:
-        raise UserError(f"{out / 'result.json'} exists; use --force to overwrite or -o DIR")
+    names = ("result.json", "fit.exr", "fit.png", "triptych.png", "convergence.png")
+    inputs = [Path(args.fit_file), *scene_inputs(job.scene)]
+    inputs += [job.target] if job.target is not None else []
+    check_outputs([out / n for n in names], force=args.force, inputs=inputs)
     scene = job.scene
     if job.target is None:
         print(f"rendering a synthetic target (seed {job.synthetic_seed}) from the scene's media")
         target = render(scene, job.synthetic_seed)
     else:
-        target = read_image(job.target) if job.target.exists() else job.target
-    res = fit(scene, target, **job.fit_kwargs(), progress=True)
+        target = job.target  # `fit` reads it, naming the file in its errors
+    try:
+        res = fit(scene, target, **job.fit_kwargs(), progress=True)
+    except FitError as e:  # what the fit file asked for: name it
+        raise UserError(f"{job.path}: {e}") from None
+    if job.target is not None:
+        target = read_image(job.target)
     out.mkdir(parents=True, exist_ok=True)
     fitted = render(res.apply(scene), job.seed) * res.exposure
     write_image(out / "fit.exr", fitted)
@@ -194,14 +218,43 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     return 0 if res.converged else 1
 
 
+def _check_measure_flags(args: argparse.Namespace) -> None:
+    """The measure command's numbers, checked before the image is read."""
+    import math
+
+    def finite(flag, v):
+        if v is not None and not math.isfinite(v):
+            raise UserError(f"{flag} must be finite, got {v:g}")
+
+    for flag, v in (("--r-min", args.r_min), ("--r-max", args.r_max), ("--power", args.power)):
+        finite(flag, v)
+    for v in args.center or ():
+        finite("--center", v)
+    if args.r_min < 0:
+        raise UserError(f"--r-min must be >= 0 mm, got {args.r_min:g}")
+    if args.r_max is not None and not args.r_max > args.r_min:
+        raise UserError(f"--r-max must be > --r-min ({args.r_min:g} mm), got {args.r_max:g}")
+    if args.power is not None and not args.power > 0:
+        raise UserError(f"--power must be > 0 W, got {args.power:g}")
+    for flag, v in (("--incidence", args.incidence), ("--view-angle", args.view_angle)):
+        if not -90 < v < 90:
+            raise UserError(f"{flag} must be between -90 and 90 degrees (exclusive), got {v:g}")
+
+
 def _cmd_measure(args: argparse.Namespace) -> int:
     import json
 
+    from ._files import check_outputs, write_text
     from .imageio import read_image, read_metadata
     from .measure import find_center, fit_profile, image_to_reflectance, radial_profile
     from .plots import measurement_plot
 
+    _check_measure_flags(args)
     path = Path(args.image)
+    out = Path(args.output) if args.output else Path("out") / f"measure-{path.stem}"
+    if out.resolve() == path.resolve().parent:
+        raise UserError(f"refusing to write results into the image's folder {out}")
+    check_outputs([out / "measure.json", out / "profile.png"], force=args.force, inputs=[path])
     image = read_image(path)
     meta = read_metadata(path)
     if not np.all(np.isfinite(image)):
@@ -211,6 +264,8 @@ def _cmd_measure(args: argparse.Namespace) -> int:
     pixel = args.pixel_size if args.pixel_size is not None else meta.get("pixel_size_mm")
     if pixel is None:
         raise UserError(f"{path}: no pixel size in the image metadata: give --pixel-size MM")
+    if pixel == float("inf"):
+        raise UserError(f"--pixel-size must be finite, got {pixel:g}")
     if not pixel > 0:
         raise UserError(f"--pixel-size must be > 0 mm, got {pixel:g}")
     media = meta.get("media") or {}
@@ -218,6 +273,8 @@ def _cmd_measure(args: argparse.Namespace) -> int:
     if eta is None:
         etas = {m.get("eta") for m in media.values()} if isinstance(media, dict) else set()
         eta = etas.pop() if len(etas) == 1 else 1.3
+    if eta == float("inf"):
+        raise UserError(f"--eta must be finite, got {eta:g}")
     if not eta > 0:
         raise UserError(f"--eta must be > 0, got {eta:g}")
     power = args.power
@@ -239,11 +296,6 @@ def _cmd_measure(args: argparse.Namespace) -> int:
             f"{prof.r.max():.3g} mm): lower --r-min or give a larger image"
         )
     res = fit_profile(prof, eta, r_min=args.r_min, free_scale=free, model=args.model)
-    out = Path(args.output) if args.output else Path("out") / f"measure-{path.stem}"
-    if out.resolve() == path.resolve().parent:
-        raise UserError(f"refusing to write results into the image's folder {out}")
-    if (out / "measure.json").exists() and not args.force:
-        raise UserError(f"{out / 'measure.json'} exists; use --force to overwrite or -o DIR")
     print(
         f"{path}: {w}x{h} px, {pixel:.4g} mm/px, centre ({center[0]:.1f}, {center[1]:.1f}) px, "
         f"eta {eta:g}, r {args.r_min:g}..{prof.r.max():.1f} mm, model {args.model}, "
@@ -287,16 +339,22 @@ def _cmd_measure(args: argparse.Namespace) -> int:
         "steps": res.steps,
         "converged": res.converged,
     }
-    (out / "measure.json").write_text(json.dumps(result, indent=2))
+    write_text(out / "measure.json", json.dumps(result, indent=2))
     print(f"wrote {(out / 'measure.json').resolve()} and {plot.resolve()}")
     return 0 if all(res.converged) else 1
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
+    from ._files import check_outputs
     from .plots import plot_profiles
     from .scene import load_scene
 
+    for flag, v in (("--size", args.size), ("--spp", args.spp)):
+        if v < 0:
+            raise UserError(f"{flag} must be >= 1 (or 0: the scene's), got {v}")
     out = Path(args.out)
+    names = ("rd_profiles.png", "marble_cube.png", "marble_cube.exr")
+    check_outputs([out / n for n in names], force=args.force)
     print(materials_table())
     path = plot_profiles(
         ["marble", "skimmilk", "ketchup", "skin1", "wholemilk", "apple"], out / "rd_profiles.png"
@@ -310,10 +368,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         scene = scene.with_settings(width=args.size, height=args.size)
     if args.spp:
         scene = scene.with_settings(spp=args.spp)
+    outputs = [out / "marble_cube.png", out / "marble_cube.exr"]
+    _check_image_outputs(scene, outputs, args.exposure)
     print(f"\nrendering {scene_path} (compiles first; about a minute on 2 cores) ...")
     for p in render_to_files(
         scene,
-        [out / "marble_cube.png", out / "marble_cube.exr"],
+        outputs,
         seed=None,
         exposure=args.exposure,
         tonemap="clip",
@@ -347,6 +407,12 @@ def _cmd_preview(args: argparse.Namespace) -> int:
     return 0
 
 
+_NO_CACHE_HELP = (
+    "compile from scratch: do not read or write the compilation cache "
+    "(default: SSSJAX_CACHE_DIR, else ~/.cache/sssjax/jax)"
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from ._version import __version__
 
@@ -355,7 +421,18 @@ def build_parser() -> argparse.ArgumentParser:
         description="Differentiable subsurface scattering (units: mm, mm^-1).",
     )
     p.add_argument("--version", action="version", version=f"sssjax {__version__}")
+    p.add_argument("--no-cache", action="store_true", help=_NO_CACHE_HELP)
     sub = p.add_subparsers(dest="command", required=True)
+    # options every compiling command takes (after the command name, too)
+    compiling = argparse.ArgumentParser(add_help=False)
+    compiling.add_argument(
+        "--no-cache", action="store_true", default=argparse.SUPPRESS, help=_NO_CACHE_HELP
+    )
+    # ... and every command that writes files: one overwrite rule (sssjax/_files.py)
+    writing = argparse.ArgumentParser(add_help=False)
+    writing.add_argument(
+        "--force", action="store_true", help="overwrite existing outputs (default: refuse)"
+    )
 
     s = sub.add_parser("materials", help="print the measured media with derived quantities")
     s.add_argument(
@@ -366,14 +443,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.set_defaults(func=_cmd_materials)
 
-    s = sub.add_parser("demo", help="the `make demo` job")
+    s = sub.add_parser("demo", parents=[compiling, writing], help="the `make demo` job")
     s.add_argument("--out", default="out", help="output folder (default: out)")
     s.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
     s.add_argument("--size", type=int, default=0, help="override the image size (pixels)")
     s.add_argument("--spp", type=int, default=0, help="override samples per pixel")
     s.set_defaults(func=_cmd_demo)
 
-    s = sub.add_parser("render", help="ray trace a scene file to EXR (linear) and/or PNG (sRGB)")
+    s = sub.add_parser(
+        "render",
+        parents=[compiling, writing],
+        help="ray trace a scene file to EXR (linear) and/or PNG (sRGB)",
+    )
     s.add_argument("scene", help="scene TOML file")
     s.add_argument(
         "-o",
@@ -394,24 +475,31 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.set_defaults(func=_cmd_render)
 
-    s = sub.add_parser("fit", help="fit scattering coefficients to a target (a fit file)")
+    s = sub.add_parser(
+        "fit",
+        parents=[compiling, writing],
+        help="fit scattering coefficients to a target (a fit file)",
+    )
     s.add_argument("fit_file", help="fit TOML file (see fits/)")
     s.add_argument("-o", "--output", help="output folder (default: the fit file's 'output')")
-    s.add_argument("--force", action="store_true", help="overwrite an existing result")
     s.set_defaults(func=_cmd_fit)
 
-    s = sub.add_parser("raytree", help="the rays behind one pixel: JSON and a picture")
+    s = sub.add_parser(
+        "raytree",
+        parents=[compiling, writing],
+        help="the rays behind one pixel: JSON and a picture",
+    )
     s.add_argument("scene", help="scene TOML file")
     s.add_argument("--pixel", type=int, nargs=2, metavar=("X", "Y"), required=True)
     s.add_argument("-o", "--output", help="tree JSON (default: out/SCENE_raytree_X_Y.json)")
     s.add_argument("--png", help="picture (default: out/SCENE_raytree_X_Y.png)")
     s.add_argument("--seed", type=int, help="random seed of the render (default: the scene's)")
     s.add_argument("--image", help="backdrop image (e.g. the render's EXR; default: quick render)")
-    s.add_argument("--force", action="store_true", help="overwrite existing outputs")
     s.set_defaults(func=_cmd_raytree)
 
     s = sub.add_parser(
         "measure",
+        parents=[compiling, writing],
         help="fit sigma_a, sigmap_s (1/mm) to the radial profile of a beam-lit image "
         "(Jensen's measurement step)",
     )
@@ -436,10 +524,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--incidence", type=float, default=0.0, help="beam angle from normal, deg")
     s.add_argument("--view-angle", type=float, default=0.0, help="camera angle from normal")
     s.add_argument("-o", "--output", help="output folder (default: out/measure-IMAGE)")
-    s.add_argument("--force", action="store_true", help="overwrite an existing result")
     s.set_defaults(func=_cmd_measure)
 
-    s = sub.add_parser("preview", help="interactive previewer of a scene in the browser (viser)")
+    s = sub.add_parser(
+        "preview",
+        parents=[compiling],
+        help="interactive previewer of a scene in the browser (viser)",
+    )
     s.add_argument("scene", help="scene TOML file")
     s.add_argument("--port", type=int, default=8080, help="port (default 8080; 0: any free port)")
     s.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
@@ -447,11 +538,23 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings as `sssjax: warning: ...`, one line (not Python's file:line and source)."""
+    text = " ".join(str(message).split())
+    print(f"sssjax: warning: {text}", file=sys.stderr if file is None else file, flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.no_cache:
+        from ._cache import disable_cache
+
+        disable_cache()
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            warnings.showwarning = _one_line_warning
+            return int(args.func(args) or 0)
     except (UserError, ValueError, FileNotFoundError, OSError) as e:
         print(f"sssjax: error: {e}", file=sys.stderr)
         return 2

@@ -28,7 +28,10 @@ import numpy as np
 import optimistix as optx
 from scipy.ndimage import binary_dilation
 
+from ._files import write_text
+from ._fitfile import check_fit_file
 from ._numerics import safe_sqrt
+from ._progress import Progress
 from ._solvers import NormalGaussNewton, NormalLevenbergMarquardt
 from .media import Medium
 from .render import as_key, renderer_for
@@ -118,7 +121,7 @@ class FitResult:
         d["units"] = "coefficients in 1/mm"
         text = json.dumps(d, indent=2)
         if path is not None:
-            Path(path).write_text(text)
+            write_text(path, text)  # atomic (sssjax/_files.py)
         return text
 
     def summary(self) -> str:
@@ -784,8 +787,8 @@ def _solve(
     y = y0
     loss0 = float(_loss(residuals, y0, args))
     history = [{"step": 0, "loss": loss0, "params": _values(y0, tanh_idx).tolist()}]
-    if progress:
-        _progress_line(0, loss0, names, _values(y0, tanh_idx))
+    bar = Progress(max_steps, "fitting", progress, unit="steps", every_line=True)
+    _progress_line(bar, 0, loss0, names, _values(y0, tanh_idx))
     result = optx.RESULTS.max_steps_reached
     stalled = False
     n = 0
@@ -793,8 +796,7 @@ def _solve(
         y, state, done, res, lval = _step(slv, fn, residuals, y, args, options, state)
         lval = float(lval)
         history.append({"step": n, "loss": lval, "params": _values(y, tanh_idx).tolist()})
-        if progress:
-            _progress_line(n, lval, names, _values(y, tanh_idx))
+        _progress_line(bar, n, lval, names, _values(y, tanh_idx))
         if bool(done):
             result = res
             break
@@ -808,6 +810,7 @@ def _solve(
                 result = optx.RESULTS.successful
                 stalled = True
                 break
+    bar.close()
     converged = result == optx.RESULTS.successful
     status = (
         "successful"
@@ -978,11 +981,12 @@ def _step(slv, fn, residuals, y, args, options, state):
     return y, state, done, res, state.f_info.as_min()
 
 
-def _progress_line(step: int, loss: float, names: list[str], vals: np.ndarray) -> None:
+def _progress_line(bar, step: int, loss: float, names: list[str], vals: np.ndarray) -> None:
+    """A step on the bar (a terminal) or as a line of its own (a file or pipe)."""
     # the material name is dropped (one material in most fits); a light keeps its prefix
     short = [n if n.startswith("lights.") else n.split(".", 1)[-1] for n in names]
     shown = "  ".join(f"{n}={v:.4g}" for n, v in zip(short, vals, strict=True))
-    print(f"step {step:3d}  loss {loss:.6g}  {shown}", file=sys.stderr, flush=True)
+    bar.update(step, line=f"step {step:3d}  loss {loss:.6g}  {shown}", loss=loss)
 
 
 # --- fit files (`sssjax fit FIT.toml`) -------------------------------------------------
@@ -1067,6 +1071,7 @@ def load_fit_file(path: str | Path) -> FitJob:
                 raise FitError(f"{path}: {where}{k}: unknown key{hint}")
 
     unknown(d, _FIT_KEYS, "")
+    check_fit_file(path, d, FitError)  # types and ranges, one line naming table and key
     if "scene" not in d:
         raise FitError(f"{path}: scene: missing required key")
     if ("target" in d) == ("synthetic" in d):
@@ -1076,7 +1081,7 @@ def load_fit_file(path: str | Path) -> FitJob:
     settings = d.get("settings", {})
     try:
         scene = scene.with_settings(**settings) if settings else scene
-    except TypeError as e:
+    except (TypeError, ValueError) as e:
         raise FitError(f"{path}: [settings]: {e}") from None
     solver = d.get("solver", {})
     unknown(solver, _SOLVER_KEYS, "[solver] ")

@@ -24,6 +24,8 @@ import numpy as np
 import OpenImageIO as oiio
 from jaxtyping import ArrayLike
 
+from ._files import atomic
+
 __all__ = [
     "FLOAT_EXTENSIONS",
     "DISPLAY_EXTENSIONS",
@@ -181,6 +183,7 @@ def write_image(
     exposure: float = 0.0,
     tonemap: str = "clip",
     overwrite_protect: Iterable[str | os.PathLike] = (),
+    overwrite: bool = True,
 ) -> Path:
     """Write a linear-RGB image; the format follows the extension of `path`.
 
@@ -194,9 +197,11 @@ def write_image(
     - `exposure`: stops applied before tone mapping (8-bit formats only).
     - `tonemap`: `"clip"`, `"reinhard"` or `"aces"`, see `tonemap` (8-bit formats only).
     - `overwrite_protect`: paths that must not be written (e.g. the caller's input files).
+    - `overwrite`: `False` fails with `FileExistsError` rather than replace an existing file.
 
-    The file is written under a temporary name in the same folder and then renamed, so a
-    failed write leaves no partial file behind.
+    The file is written under a temporary name in the same folder and then renamed
+    (`sssjax._files.atomic`), so a failed or interrupted write leaves the old file intact and
+    no partial file behind.
 
     **Returns:** the `Path` written.
 
@@ -244,9 +249,7 @@ def write_image(
     elif metadata:
         _metadata_attributes(metadata)  # still reject values that cannot be encoded
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-    try:
+    with atomic(path, overwrite=overwrite) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
             raise OSError(f"{path}: cannot write: {_oiio_error()}")
@@ -255,9 +258,6 @@ def write_image(
         ok = out.close() and ok
         if not ok:
             raise OSError(f"{path}: cannot write: {_oiio_error(out)}")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return path
 
 

@@ -20,14 +20,15 @@ def _pyplot():
 
 
 def _save(fig, path, dpi: int = 110) -> Path:
-    """Write `fig` to `path` (creating its folder) and close it."""
+    """Write `fig` to `path` (creating its folder, atomically) and close it."""
     plt = _pyplot()
+    from ._files import save_figure
+
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
-    return path
+    try:
+        return save_figure(fig, path, dpi=dpi)  # atomic: never half a PNG
+    finally:
+        plt.close(fig)
 
 
 def plot_profiles(names: Sequence[str], path: str | Path, r_max_mm: float = 20.0) -> Path:

@@ -48,6 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._files import check_outputs, save_figure, scene_inputs, write_text
 from .scene import Scene, load_scene
 
 __all__ = ["KINDS", "RayTree", "raytree", "plot_raytree", "raytree_files"]
@@ -137,8 +138,7 @@ class RayTree:
         """The tree as JSON text (also written to `path` when given)."""
         text = json.dumps(self.to_dict())
         if path is not None:
-            Path(path).parent.mkdir(parents=True, exist_ok=True)
-            Path(path).write_text(text)
+            write_text(path, text)  # atomic
         return text
 
     @classmethod
@@ -655,11 +655,10 @@ def plot_raytree(
         fontsize=11,
     )
     fig.tight_layout(rect=(0, 0.11, 1, 0.95))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi, facecolor=fig.get_facecolor())
-    plt.close(fig)
-    return path
+    try:
+        return save_figure(fig, path, dpi=dpi, facecolor=fig.get_facecolor())
+    finally:
+        plt.close(fig)
 
 
 def raytree_files(
@@ -691,14 +690,10 @@ def raytree_files(
     json_path = Path(json_path or Path("out") / f"{stem}_raytree_{x}_{y}.json")
     png_path = Path(png_path or Path("out") / f"{stem}_raytree_{x}_{y}.png")
     inputs = [Path(scene_path)] + ([Path(image_path)] if image_path else [])
-    for out in (json_path, png_path):
-        for inp in inputs:
-            if out.resolve() == inp.resolve():
-                raise ValueError(f"refusing to overwrite the input file {out}")
-        if out.exists() and not force:
-            raise ValueError(f"{out} exists; use --force to overwrite")
-    if json_path.resolve() == png_path.resolve():
-        raise ValueError(f"the JSON and PNG outputs are the same file {json_path}")
+    inputs += scene_inputs(scene)
+    check_outputs([json_path, png_path], force=force, inputs=inputs)
+    if image_path is not None and not Path(image_path).is_file():
+        raise FileNotFoundError(f"image not found: {image_path}")  # before the tracing
     if png_path.suffix.lower() != ".png":
         raise ValueError(f"--png {png_path}: expected a .png file")
     seed = scene.render.seed if seed is None else seed

@@ -17,6 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ._budget import check_memory
+from ._progress import Progress
 from .media import Medium
 from .scene import Scene
 from .shade import shade_image, shade_sss
@@ -68,6 +70,7 @@ class Renderer:
     """
 
     def __init__(self, scene: Scene, devices=None):
+        check_memory(scene)  # one line before allocating, for a render that cannot fit
         self.scene = scene
         self.tracer = SceneTracer(scene)
         self.devices = list(devices) if devices is not None else jax.devices()
@@ -131,7 +134,7 @@ class Renderer:
         eta = jnp.asarray(self.tracer.eta_for() if eta is None else eta, dtype=float)
         gain = self.tracer.gain_for(gain)
         k_tiles = jax.random.fold_in(key, 1)
-        bar = _Progress(self.n_blocks, progress_label or "", progress_label is not None)
+        bar = Progress(self.n_blocks, progress_label or "", progress_label is not None)
         step = max(CHUNK_TILES, self.D) // self.D * self.D
         for c0 in range(0, self.n_blocks, step):
             pix_l, base_l, slot_l = [], [], []
@@ -288,6 +291,7 @@ def render(
     key=None,
     media: Mapping[str, Medium] | None = None,
     *,
+    seed: int | None = None,
     progress: bool = False,
     devices=None,
 ) -> np.ndarray:
@@ -296,7 +300,8 @@ def render(
     **Arguments:**
 
     - `scene`: from `load_scene`. Lengths in mm, coefficients in mm^-1.
-    - `key`: a `jax.random` key or integer seed (default: the scene's `render.seed`).
+    - `key`: a `jax.random` key or integer seed (default: the scene's `render.seed`);
+      `seed=` is the same, by name (give one of them).
     - `media`: override the translucent materials' media (dict by material name).
     - `progress`: print a progress bar over tiles to stderr.
     - `devices`: JAX devices to shard tiles over (default: all).
@@ -305,6 +310,10 @@ def render(
     Under `jax.grad` / `jax.jacfwd` with respect to `media` it returns a JAX array
     (`shade_image(trace(scene, key), media)`: the trace is fixed, the shading differentiated).
     """
+    if seed is not None:
+        if key is not None:
+            raise TypeError("render: give the seed as `key` or as `seed=`, not both")
+        key = seed
     r = renderer_for(scene, devices)
     m = dict(scene.media())
     if media:

@@ -12,6 +12,7 @@ import dataclasses
 import difflib
 import math
 import tomllib
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,6 +25,7 @@ from .profiles import PROFILES, check_profile
 
 __all__ = [
     "SceneError",
+    "SceneWarning",
     "Camera",
     "AreaLight",
     "PointLight",
@@ -41,6 +43,17 @@ class SceneError(ValueError):
     """A problem in a scene description, reported as `FILE: [table] field: message`."""
 
 
+class SceneWarning(UserWarning):
+    """A scene that loads but is probably not what was meant (no lights)."""
+
+
+def _emission(light) -> np.ndarray:
+    for f in ("radiance", "intensity", "power"):
+        if hasattr(light, f):
+            return np.asarray(getattr(light, f))
+    return np.ones(3)
+
+
 def did_you_mean(word: str, options) -> str:
     """`"; did you mean 'x'?"` for the closest of `options` to `word`, or `""`."""
     close = difflib.get_close_matches(str(word), list(options), n=1)
@@ -51,12 +64,16 @@ def read_toml(path: Path, error: type[Exception], what: str) -> dict:
     """Parse a TOML file; a missing, binary or malformed file raises `error` in one line."""
     if not path.exists():
         raise error(f"{path}: {what} not found")
+    if path.is_dir():
+        raise error(f"{path}: is a folder, not a {what}")
     try:
         return tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise error(f"{path}: not valid TOML: {e}") from None
     except UnicodeDecodeError:
         raise error(f"{path}: not a text file") from None
+    except OSError as e:
+        raise error(f"{path}: cannot read the {what}: {e.strerror or e}") from None
 
 
 # --- the parsed scene ------------------------------------------------------------------
@@ -220,6 +237,13 @@ class Scene:
         unknown = set(kw) - set(r) - {f"sss_{k}" for k in s} - set(c)
         if unknown:
             raise TypeError(f"unknown settings: {sorted(unknown)}")
+        # the scene file's own checks, naming the keyword (`width: must be >= 1, got 0`)
+        ctx = _KeywordCtx()
+        r = {k: _RENDER[k][0](ctx, k, _plain(v)) if k in _RENDER else v for k, v in r.items()}
+        s = {k: _SSS[k][0](ctx, f"sss_{k}", _plain(v)) if k in _SSS else v for k, v in s.items()}
+        c = {k: _CAMERA[k][0](ctx, k, _plain(v)) for k, v in c.items()}
+        if "fov" in c and not 0 < c["fov"] < 180:
+            raise ctx.err("fov", f"must be between 0 and 180 degrees, got {c['fov']:g}")
         if "profile" in s:
             check_profile(s["profile"])
         return dataclasses.replace(
@@ -241,6 +265,25 @@ class _Ctx:
     def err(self, field_name: str | None, msg: str) -> SceneError:
         where = f"[{self.table}]" + (f" {field_name}" if field_name else "")
         return SceneError(f"{self.file}: {where}: {msg}")
+
+
+def _plain(v: Any) -> Any:
+    """NumPy scalars and arrays as the Python numbers and lists a TOML file would give."""
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    return v
+
+
+class _KeywordCtx(_Ctx):
+    """Errors of `Scene.with_settings` keywords: `spp: must be >= 1, got 0`."""
+
+    def __init__(self):
+        super().__init__("", "")
+
+    def err(self, field_name: str | None, msg: str) -> SceneError:
+        return SceneError(f"{field_name}: {msg}")
 
 
 def _fmt(v: Any) -> str:
@@ -336,10 +379,17 @@ def _any(ctx, name, v):
     return v
 
 
+def _not_a_table(ctx: _Ctx, data: Any) -> str:
+    if isinstance(data, list) and data and all(isinstance(x, Mapping) for x in data):
+        return f"expected one table [{ctx.table}], got an array of tables [[{ctx.table}]]"
+    text = _fmt(data)
+    return f"expected a table, got {text if len(text) <= 60 else text[:57] + '...'}"
+
+
 def _fields(ctx: _Ctx, data: Any, schema: dict) -> dict:
     """Check `data` against `schema` {field: (checker, default)}; unknown keys get a hint."""
     if not isinstance(data, Mapping):
-        raise ctx.err(None, f"expected a table, got {_fmt(data)}")
+        raise ctx.err(None, _not_a_table(ctx, data))
     for key in data:
         if key not in schema:
             hint = did_you_mean(key, list(schema))
@@ -483,6 +533,13 @@ def _translucent_medium(ctx: _Ctx, f: dict) -> Medium:
         sigma_s = f["sigma_s"] if f["sigma_s"] is not None else f["sigmap_s"] / (1.0 - g)
         eta = 1.3 if f["eta"] is None else f["eta"]
     scale = f["scale"]
+    sigma_t = (np.asarray(sigma_a) + np.asarray(sigma_s)) * scale
+    if np.any(sigma_t <= 0):
+        raise ctx.err(
+            "sigma_s",
+            f"sigma_a + sigma_s must be > 0 in every channel, got {[float(x) for x in sigma_t]} "
+            "(a medium that neither absorbs nor scatters)",
+        )
     try:
         return Medium(np.asarray(sigma_a) * scale, np.asarray(sigma_s) * scale, g, eta)
     except ValueError as e:
@@ -500,6 +557,8 @@ def _parse_mesh(ctx: _Ctx, f: dict, base: Path | None):
             path = base / path
         if not path.exists():
             raise ctx.err("file", f"OBJ file not found: {path}")
+        if path.is_dir():
+            raise ctx.err("file", f"{path} is a folder, not an OBJ file")
         try:
             return shapes.load_obj(path)
         except (ValueError, OSError) as e:
@@ -656,12 +715,25 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
             params = {"vertices": verts, "faces": faces}
         try:
             geom = shapes.make_shape(kind, params, f["translate"], f["rotate"], f["scale"])
+            area = None
             if materials[f["material"]].type == "translucent":
-                geom.area()  # translucent shapes need an exact area and sampler
+                area = float(geom.area())  # translucent shapes need an exact area and sampler
         except ValueError as e:
             raise ctx.err("scale", str(e)) from None
+        if area is not None and not area > 0:  # (a mesh of degenerate faces)
+            raise ctx.err(None, f"a translucent shape needs a surface area > 0 mm^2, got {area:g}")
         shape_list.append(ShapeSpec(kind, f["material"], geom))
 
+    if not shape_list:
+        raise SceneError(f"{file}: [[shapes]]: the scene has no shapes (add a [[shapes]] table)")
+    if not lights or not any(np.any(_emission(lt) > 0) for lt in lights):
+        warnings.warn(
+            f"{file}: "
+            + ("no [[lights]]" if not lights else "every light has zero emission")
+            + ": the image shows only the background (and what reflects it)",
+            SceneWarning,
+            stacklevel=2,
+        )
     return Scene(
         camera=camera,
         lights=tuple(lights),

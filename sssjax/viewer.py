@@ -313,16 +313,12 @@ def save_paths(base: str | Path, protect=()) -> dict[str, Path]:
     If any of them exists (or is a protected input), `_1`, `_2`, ... is appended to the stem
     until none does: a save never overwrites a file.
     """
+    from ._files import free_stem
+
     base = Path(base)
     if base.suffix.lower() in (".png", ".exr", ".toml", ".jpg", ".tif"):
         base = base.with_suffix("")
-    protected = {Path(p).resolve() for p in protect}
-    for n in range(10_000):
-        stem = base.name if n == 0 else f"{base.name}_{n}"
-        paths = {ext: base.with_name(f"{stem}.{ext}") for ext in ("png", "exr", "toml")}
-        if not any(p.exists() or p.resolve() in protected for p in paths.values()):
-            return paths
-    raise FileExistsError(f"{base}: no free output name after 10000 tries")
+    return free_stem(base, (".png", ".exr", ".toml"), protect)
 
 
 # --- the server -------------------------------------------------------------------------
@@ -841,6 +837,7 @@ class Previewer:
 
         **Returns:** the paths written, by extension.
         """
+        from ._files import write_text
         from ._version import __version__
         from .imageio import write_image
 
@@ -859,11 +856,12 @@ class Previewer:
             light_samples=int(scene.render.light_samples),
             sss_enabled=bool(scene.sss.enabled),
         )
-        paths["toml"].parent.mkdir(parents=True, exist_ok=True)
-        with open(paths["toml"], "x") as f:  # "x": fails rather than overwrite
-            f.write(text)
+        # atomic, and failing rather than replacing a file that appeared meanwhile
+        write_text(paths["toml"], text, overwrite=False)
         for ext in ("png", "exr"):
-            write_image(paths[ext], self.image, metadata=meta, overwrite_protect=protect)
+            write_image(
+                paths[ext], self.image, metadata=meta, overwrite_protect=protect, overwrite=False
+            )
         self._status("saved " + ", ".join(str(p) for p in paths.values()))
         return paths
 

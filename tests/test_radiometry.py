@@ -22,6 +22,7 @@ import sssjax
 from sssjax.camera import project
 from sssjax.render import Renderer
 from sssjax.sampling import jittered_grid, stratified_2d
+from sssjax.scene import Camera
 
 SUB = 8  # sub-pixel rays per axis for the footprint average of the expected values
 
@@ -128,8 +129,10 @@ def test_reference_camera_matches_project():
     cam.update(width=12, height=6)
     o, d = reference_rays(cam, sub=2)
     _, p = hit_plane(o, d, 1, 0.0)
-    scene = make_scene(cam, [], {}, [])
-    got = np.asarray(project(scene.camera, p.reshape(-1, 3))).reshape(6, 12, 4, 2)
+    camera = Camera(
+        **{k: np.asarray(v, float) if isinstance(v, list) else v for k, v in cam.items()}
+    )
+    got = np.asarray(project(camera, p.reshape(-1, 3))).reshape(6, 12, 4, 2)
     off = np.array([0.25, 0.75])
     want_x = np.arange(12)[None, :, None] + np.tile(off, 2)[None, None, :]
     want_y = np.arange(6)[:, None, None] + np.repeat(off, 2)[None, None, :]
