@@ -21,17 +21,19 @@ from radiance_reference import radiance_profile
 _FNS: dict = {}
 
 
-def walk(scene, spp, seed, media=None, nee=True, K=4, block=1024):
+def walk(scene, spp, seed, media=None, nee=True, K=4, block=1024, spectral="mis"):
     """`(image (H, W, 3), base, terms, stats)` of a volumetric trace at the scene's media
     (or `media`, a list in the scene's translucent order) as the proposal."""
     vs = VolScene.build(scene)
     media = list(scene.media().values()) if media is None else list(media)
     prop = V.Proposal.from_media(media)
     cam = scene.camera
-    key = (id(scene), spp, nee, K)
+    key = (id(scene), spp, nee, K, spectral)
     if key not in _FNS:
         _FNS[key] = jax.jit(
-            lambda vs, prop, pix, k: V.trace_block(vs, prop, cam, pix, k, spp, K=K, nee=nee)
+            lambda vs, prop, pix, k: V.trace_block(
+                vs, prop, cam, pix, k, spp, K=K, nee=nee, spectral=spectral
+            )
         )
     f = _FNS[key]
     n = cam.width * cam.height
@@ -45,13 +47,16 @@ def walk(scene, spp, seed, media=None, nee=True, K=4, block=1024):
         stats.append(s)
     base = np.concatenate(bases)
     tm = V.VolumetricTerms(
-        *(jnp.concatenate([getattr(t, f) for t in terms], axis=1) for f in ("w", "n", "L")),
+        *(
+            jnp.concatenate([getattr(t, f) for t in terms], axis=a)
+            for f, a in (("w", 1), ("n", 0), ("L", 0))
+        ),
         terms[0].sigma_s0,
         terms[0].sigma_t0,
     )
     img = base + np.asarray(V.shade_terms(tm, media))
     total = {k: sum(float(getattr(s, k)) for s in stats) for k in V._LEDGER}
-    total["walkers"] = len(stats) * block * spp * 3  # padded blocks included
+    total["walkers"] = len(stats) * block * spp * (3 if spectral == "separate" else 1)
     total["lost"] = sum(int(s.lost) for s in stats)
     return img.reshape(cam.height, cam.width, 3), base, tm, total
 
@@ -75,7 +80,9 @@ def test_planar_connection_obeys_snell_and_its_G_matches_the_exit_map(x64):
             b = xx + (-xx[..., 2] / ww[..., 2])[..., None] * ww
             return b, jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0]), b.shape)
 
-        G = C.exit_map_G(jnp.asarray(x), r["w1"], plane_exit, jnp.asarray(e), jnp.asarray(y), r["w2"])
+        G = C.exit_map_G(
+            jnp.asarray(x), r["w1"], plane_exit, jnp.asarray(e), jnp.asarray(y), r["w2"]
+        )
         np.testing.assert_allclose(np.asarray(G), np.asarray(r["G_perp"]), rtol=1e-8)
         if eta == 1.0:  # a straight line: 1 / distance^2
             d2 = np.sum((x - y) ** 2, axis=1)
@@ -126,7 +133,9 @@ def test_sphere_connections_are_refracted_paths_and_G_gives_the_lights_solid_ang
         Nd = 400000
         w = rng.normal(size=(Nd, 3))
         w /= np.linalg.norm(w, axis=1)[:, None]
-        bx, nb = C.sphere_exit(jnp.asarray(np.broadcast_to(x, (Nd, 3))), jnp.asarray(w), jnp.zeros(3), jnp.full(Nd, R))
+        bx, nb = C.sphere_exit(
+            jnp.asarray(np.broadcast_to(x, (Nd, 3))), jnp.asarray(w), jnp.zeros(3), jnp.full(Nd, R)
+        )
         w2, okr = C.refract_dir(jnp.asarray(w), -nb, jnp.full(Nd, 1.0 / eta))
         bx, w2 = np.asarray(bx), np.asarray(w2)
         t = (corner[1] - bx[:, 1]) / w2[:, 1]
@@ -142,16 +151,40 @@ def test_sphere_connections_are_refracted_paths_and_G_gives_the_lights_solid_ang
 def _furnace(sigma_a, sigma_s, g, eta, width=16):
     return sssjax.load_scene(
         {
-            "camera": {"origin": [0, 0, 60], "target": [0, 0, 0], "fov": 38, "width": width, "height": width},
+            "camera": {
+                "origin": [0, 0, 60],
+                "target": [0, 0, 0],
+                "fov": 38,
+                "width": width,
+                "height": width,
+            },
             "render": {"spp": 4, "background": 1.0},
             "materials": {
-                "m": {"type": "translucent", "sigma_a": sigma_a, "sigma_s": sigma_s, "g": g, "eta": eta},
+                "m": {
+                    "type": "translucent",
+                    "sigma_a": sigma_a,
+                    "sigma_s": sigma_s,
+                    "g": g,
+                    "eta": eta,
+                },
                 "w": {"type": "diffuse", "albedo": 1.0},
             },
             "shapes": [
                 {"type": "sphere", "material": "m", "radius": 7.0, "translate": [-9, 0, 0]},
-                {"type": "cube", "material": "m", "size": 9.0, "translate": [8, 6, 0], "rotate": [20, 30, 0]},
-                {"type": "cylinder", "material": "m", "radius": 4.0, "height": 8.0, "translate": [8, -12, 0]},
+                {
+                    "type": "cube",
+                    "material": "m",
+                    "size": 9.0,
+                    "translate": [8, 6, 0],
+                    "rotate": [20, 30, 0],
+                },
+                {
+                    "type": "cylinder",
+                    "material": "m",
+                    "radius": 4.0,
+                    "height": 8.0,
+                    "translate": [8, -12, 0],
+                },
                 {"type": "sphere", "material": "w", "radius": 3.0, "translate": [0, -8, 5]},
             ],
             "lights": [],
@@ -164,13 +197,20 @@ def test_white_furnace_non_absorbing_objects_are_invisible(g, eta):
     """sigma_a = 0 (any sigma_s, chromatic), albedo-1 diffuse, uniform environment: every
     pixel is the environment's radiance; every walker's weight escapes (bookkeeping)."""
     sc = _furnace(0.0, [0.3, 1.0, 3.0], g, eta)
-    img, _, _, tot = walk(sc, 4, 0)
+    img, _, _, tot = walk(sc, 4, 0, spectral="separate")  # each channel's own walkers: exact
     np.testing.assert_allclose(img, 1.0, atol=2e-5)
     assert abs(tot["escaped"] - tot["walkers"]) < 1e-4 * tot["walkers"]
     assert tot["lost"] == 0
+    # one walker for all channels (spectral MIS): unbiased, no longer zero-variance
+    img, _, _, tot = walk(sc, 4, 1)
+    assert abs(sum(tot[k] for k in V._LEDGER) - tot["walkers"]) < 1e-4 * tot["walkers"]
+    px = img.reshape(-1, 3)
+    se = px.std(0, ddof=1) / np.sqrt(len(px))
+    assert np.all(np.abs(px.mean(0) - 1.0) < 4 * se + 1e-5), (px.mean(0), se)
 
 
-def test_absorbing_sphere_in_a_uniform_environment_matches_its_closed_form():
+@pytest.mark.parametrize("spectral", ["separate", "mis"])
+def test_absorbing_sphere_in_a_uniform_environment_matches_its_closed_form(spectral):
     """A clear absorbing sphere (sigma_s = 0) seen orthographically in a uniform environment:
     `L = F + (1 - F)^2 e^-tau / (1 - F e^-tau)`, `tau = sigma_a 2 R cos(theta_t)` (all
     internal chords are equal), averaged over each pixel; the re-weighted trace at other
@@ -179,15 +219,23 @@ def test_absorbing_sphere_in_a_uniform_environment_matches_its_closed_form():
     sa = np.array([0.02, 0.08, 0.3])
     sc = sssjax.load_scene(
         {
-            "camera": {"origin": [0, 0, 50], "target": [0, 0, 0], "projection": "orthographic",
-                       "view_width": 2.2 * R, "width": N, "height": N},
+            "camera": {
+                "origin": [0, 0, 50],
+                "target": [0, 0, 0],
+                "projection": "orthographic",
+                "view_width": 2.2 * R,
+                "width": N,
+                "height": N,
+            },
             "render": {"spp": SPP, "background": 1.0},
-            "materials": {"m": {"type": "translucent", "sigma_a": sa.tolist(), "sigma_s": 0.0, "eta": eta}},
+            "materials": {
+                "m": {"type": "translucent", "sigma_a": sa.tolist(), "sigma_s": 0.0, "eta": eta}
+            },
             "shapes": [{"type": "sphere", "material": "m", "radius": R}],
             "lights": [],
         }
     )
-    img, base, terms, tot = walk(sc, SPP, 3, block=N * N)
+    img, base, terms, tot = walk(sc, SPP, 3, block=N * N, spectral=spectral)
     assert abs(sum(tot[k] for k in V._LEDGER) - tot["walkers"]) < 1e-4 * tot["walkers"]
     # closed form on a 16 x 16 grid per pixel
     s = 16
@@ -212,13 +260,15 @@ def test_absorbing_sphere_in_a_uniform_environment_matches_its_closed_form():
 
     def check(image, sigma_a):
         want = closed(sigma_a)
-        # per-sample values lie in [0, 1]: standard error <= 0.5 / sqrt(spp) per pixel
-        se = 0.5 / np.sqrt(SPP)
+        # per-sample values lie in [0, 1] (MIS weights: [0, 3]): a bound on the standard error
+        se = (0.5 if spectral == "separate" else 1.5) / np.sqrt(SPP)
         assert np.max(np.abs(image - want)) < 4.5 * se
         # the sphere's mean, far more precise
         centre = (np.arange(N) + 0.5) * px - 1.1 * R
         m = np.hypot(*np.meshgrid(centre, centre)) < R - px  # pixels wholly on the sphere
-        np.testing.assert_allclose(image[m].mean(0), want[m].mean(0), atol=4 * se / np.sqrt(m.sum()))
+        np.testing.assert_allclose(
+            image[m].mean(0), want[m].mean(0), atol=4 * se / np.sqrt(m.sum())
+        )
 
     check(img, sa)
     other = [Medium(sa * 3.0, 0.0, 0.0, eta)]
@@ -228,22 +278,62 @@ def test_absorbing_sphere_in_a_uniform_environment_matches_its_closed_form():
 def _lit_scene(width=24, height=16, spp=16, extra_lights=()):
     return sssjax.load_scene(
         {
-            "camera": {"origin": [0, 30, 60], "target": [0, 5, 0], "fov": 35, "width": width, "height": height},
+            "camera": {
+                "origin": [0, 30, 60],
+                "target": [0, 5, 0],
+                "fov": 35,
+                "width": width,
+                "height": height,
+            },
             "render": {"spp": spp},
             "lights": [
-                {"type": "area", "corner": [-20, 40, -20], "edge_u": [40, 0, 0], "edge_v": [0, 0, 40], "radiance": 3.0},
+                {
+                    "type": "area",
+                    "corner": [-20, 40, -20],
+                    "edge_u": [40, 0, 0],
+                    "edge_v": [0, 0, 40],
+                    "radiance": 3.0,
+                },
                 *extra_lights,
             ],
             "materials": {
-                "m": {"type": "translucent", "sigma_a": [0.02, 0.05, 0.2], "sigma_s": [0.5, 1.0, 2.0], "eta": 1.4},
-                "k": {"type": "translucent", "sigma_a": [0.1, 0.02, 0.01], "sigma_s": [1.0, 0.7, 0.4], "g": 0.3, "eta": 1.3},
+                "m": {
+                    "type": "translucent",
+                    "sigma_a": [0.02, 0.05, 0.2],
+                    "sigma_s": [0.5, 1.0, 2.0],
+                    "eta": 1.4,
+                },
+                "k": {
+                    "type": "translucent",
+                    "sigma_a": [0.1, 0.02, 0.01],
+                    "sigma_s": [1.0, 0.7, 0.4],
+                    "g": 0.3,
+                    "eta": 1.3,
+                },
                 "floor": {"type": "diffuse", "albedo": 0.5},
             },
             "shapes": [
                 {"type": "sphere", "material": "m", "radius": 6.0, "translate": [-14, 6, 0]},
-                {"type": "cube", "material": "k", "size": 10.0, "translate": [0, 5, 0], "rotate": [0, 30, 0]},
-                {"type": "cylinder", "material": "m", "radius": 5.0, "height": 10.0, "translate": [14, 0, 0]},
-                {"type": "quadmesh", "material": "floor", "vertices": [[-100, 0, -100], [-100, 0, 100], [100, 0, 100], [100, 0, -100]], "faces": [[0, 1, 2, 3]]},
+                {
+                    "type": "cube",
+                    "material": "k",
+                    "size": 10.0,
+                    "translate": [0, 5, 0],
+                    "rotate": [0, 30, 0],
+                },
+                {
+                    "type": "cylinder",
+                    "material": "m",
+                    "radius": 5.0,
+                    "height": 10.0,
+                    "translate": [14, 0, 0],
+                },
+                {
+                    "type": "quadmesh",
+                    "material": "floor",
+                    "vertices": [[-100, 0, -100], [-100, 0, 100], [100, 0, 100], [100, 0, -100]],
+                    "faces": [[0, 1, 2, 3]],
+                },
             ],
         }
     )
@@ -260,7 +350,10 @@ def test_next_event_estimation_through_the_boundary_agrees_with_random_exits():
     paths it covers, against the same walks counting every light hit of random exits: two
     estimators of one integral, chromatic media, several objects, a floor in their light."""
     sc = _lit_scene()
-    runs = {nee: np.stack([walk(sc, 16, 10 * s + nee, nee=nee)[0] for s in range(4)]) for nee in (True, False)}
+    runs = {
+        nee: np.stack([walk(sc, 16, 10 * s + nee, nee=nee)[0] for s in range(4)])
+        for nee in (True, False)
+    }
     A, B = _blocks(runs[True]), _blocks(runs[False])
     ma, mb = A.mean(0), B.mean(0)
     se = np.sqrt(A.var(0, ddof=1) / len(A) + B.var(0, ddof=1) / len(B))
@@ -274,19 +367,46 @@ def _slab(sigma_a, sigma_s, g, eta, n=48, view=8.0, radius=0.05, big=True):
     size = [200, 100, 200] if big else [200, 1.0, 200]
     return sssjax.load_scene(
         {
-            "camera": {"origin": [0, 50, 0], "target": [0, 0, 0], "up": [0, 0, -1], "projection": "orthographic",
-                       "view_width": view, "width": n, "height": n},
+            "camera": {
+                "origin": [0, 50, 0],
+                "target": [0, 0, 0],
+                "up": [0, 0, -1],
+                "projection": "orthographic",
+                "view_width": view,
+                "width": n,
+                "height": n,
+            },
             "render": {"spp": 16},
-            "lights": [{"type": "beam", "position": [0, 50, 0], "direction": [0, -1, 0], "radius": radius, "power": 1.0}],
-            "materials": {"m": {"type": "translucent", "sigma_a": sigma_a, "sigma_s": sigma_s, "g": g, "eta": eta}},
-            "shapes": [{"type": "cube", "material": "m", "size": size, "translate": [0, -size[1] / 2, 0]}],
+            "lights": [
+                {
+                    "type": "beam",
+                    "position": [0, 50, 0],
+                    "direction": [0, -1, 0],
+                    "radius": radius,
+                    "power": 1.0,
+                }
+            ],
+            "materials": {
+                "m": {
+                    "type": "translucent",
+                    "sigma_a": sigma_a,
+                    "sigma_s": sigma_s,
+                    "g": g,
+                    "eta": eta,
+                }
+            },
+            "shapes": [
+                {"type": "cube", "material": "m", "size": size, "translate": [0, -size[1] / 2, 0]}
+            ],
         }
     )
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("sigma_a,sigma_s,g,eta", [(0.1, 0.9, 0.0, 1.3), (0.05, 1.5, 0.6, 1.5)])
-def test_thick_slab_under_a_beam_reproduces_the_independent_radiance_profile(sigma_a, sigma_s, g, eta):
+def test_thick_slab_under_a_beam_reproduces_the_independent_radiance_profile(
+    sigma_a, sigma_s, g, eta
+):
     """Semi-infinite limit: a 100 mm slab under a 0.05 mm beam seen orthographically from
     above, against an independent photon tracer (tests/radiance_reference.py) bin by bin,
     beyond the beam (r >= 0.2 mm; the beam's own single scattering is checked against its
@@ -347,7 +467,9 @@ def test_reweighted_trace_equals_a_fresh_trace_and_its_sample_size_falls_away_fr
         if s == 0:
             ratios = []
             for f in (1.0, 1.2, 1.5, 2.5):
-                ess, ess0 = (np.asarray(a) for a in V.effective_sample_size(terms, _scaled(media, f)))
+                ess, ess0 = (
+                    np.asarray(a) for a in V.effective_sample_size(terms, _scaled(media, f))
+                )
                 ok = ess0 > 0
                 ratios.append(np.mean(ess[ok] / ess0[ok]))
             np.testing.assert_allclose(ratios[0], 1.0, rtol=1e-5)
@@ -366,8 +488,8 @@ def test_reweighting_gradients_match_central_differences(x64):
     P, R, Mt = 5, 7, 2
     terms = V.VolumetricTerms(
         jnp.asarray(rng.random((3, P, R))),
-        jnp.asarray(rng.integers(0, 40, (3, P, R, Mt)).astype(float)),
-        jnp.asarray(rng.random((3, P, R, Mt)) * 20.0),
+        jnp.asarray(rng.integers(0, 40, (P, R, Mt)).astype(float)),
+        jnp.asarray(rng.random((P, R, Mt)) * 20.0),
         jnp.asarray([[1.0, 0.8, 0.5], [0.3, 0.4, 0.9]]),
         jnp.asarray([[1.1, 0.9, 0.7], [0.5, 0.45, 1.0]]),
     )

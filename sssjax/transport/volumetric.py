@@ -1,18 +1,24 @@
 """The volumetric transport: exact light transport by random walks inside the actual
 geometry of every translucent object, re-weighted (not re-traced) for other coefficients.
 
-**The walk.** Each camera sample starts three walkers, one per RGB channel, each sampled with
-its own proposal coefficients `sigma_s0`, `sigma_t0` (the scene's media unless given).
-Outside objects a walker is a path tracer with unlimited depth: diffuse surfaces
-(next-event estimation to every kind of light, then a cosine-weighted bounce), mirrors,
-and smooth dielectric boundaries of translucent objects (exact unpolarised Fresnel
-reflectance chooses reflection or refraction, total internal reflection included). Inside
-a homogeneous medium it takes exact exponential free flights at `sigma_t0`, scatters with the
-Henyey-Greenstein phase function (weight `sigma_s0 / sigma_t0` per event) and meets the
-boundary again. Light that leaves an object continues as a normal ray: it can hit the floor,
-a mirror, a light or the object again, so translucent shadows, light through thin parts and
-interreflections are in the image. Russian roulette on the coefficient-independent weight
-ends paths without bias.
+**The walk.** Outside objects a walker is a path tracer with unlimited depth: diffuse
+surfaces (next-event estimation to every kind of light, then a cosine-weighted bounce),
+mirrors, and smooth dielectric boundaries of translucent objects (the exact unpolarised
+Fresnel reflectance chooses reflection or refraction, total internal reflection included).
+Inside a homogeneous medium it takes exact exponential free flights, scatters with the
+Henyey-Greenstein phase function and meets the boundary again. Light that leaves an object
+continues as a normal ray: it can hit the floor, a mirror, a light or the object again, so
+translucent shadows, light through thin parts and interreflections are in the image.
+Russian roulette on the coefficient-independent weight ends paths without bias.
+
+**Colour.** Each RGB channel has its own proposal coefficients `sigma_s0`, `sigma_t0` (the
+scene's media unless given). With `spectral="mis"` (default) one walker per camera sample
+serves all three channels: it draws its free flights with the proposal of a *hero* channel
+chosen at random, and each channel weighs the path by `f_c / mean_k P_k`, the balance
+heuristic over the three channels' path densities (one-sample MIS; every weight is at most
+3 times that channel's own estimator, so long walks stay well-behaved where a fixed hero
+channel is heavy-tailed). For grey-ish media one walk then does the work of three. With
+`spectral="separate"` each channel has its own walkers (three per sample).
 
 **Next-event estimation inside media.** At every scattering vertex one light is chosen by
 power and connected through the boundary by the refracted path (`_connect`: planar faces in
@@ -20,17 +26,20 @@ closed form, spheres by their stationary optical paths), with the generalised ge
 Fresnel transmittance, phase function and attenuation. Paths that scatter, reach a covered
 boundary point and leave straight into an area light are not counted again when they hit it
 (the estimator already did); where the estimator cannot reach (curved sides of cylinders and
-cones, large meshes) those hits count, so the image stays unbiased, only noisier. Beam
-lights are reached by a second scattering on the refracted beam (equiangular sampling).
+cones, large meshes) those hits count, so the image stays unbiased, only noisier. Point lights
+are reached through planar faces and spheres only. Beam lights are reached by a second
+scattering on the refracted beam (equiangular sampling), and their single scattering by the
+medium segments that cross the beam.
 
 **Trace once, shade many, exactly.** A path's weight depends on the coefficients only through
 its number of scattering events `n` and its length `L` in each medium:
 `w(sigma) = w0 (sigma_s / sigma_s0)^n exp(-(sigma_t - sigma_t0) L)` (perturbation Monte
 Carlo, Hayakawa et al. 2001). Each walker keeps `K` records `(n, L)` drawn from its
 contributions in proportion to their weight at the proposal (weighted reservoir sampling with
-replacement, `K` independent slots) and the total weight `W`: `W / K sum_k f_k(sigma)` is
-an unbiased estimate of the walker's radiance for any coefficients, exact at the proposal.
-Contributions of paths that never entered a medium go to `base`.
+replacement, `K` independent slots), each with its channels' shares, and the total weight
+`W`: `W / K sum_k a_kc f_k(sigma)` is an unbiased estimate of the walker's radiance in
+channel `c` for any coefficients, exact at the proposal. Contributions of paths that never
+entered a medium go to `base`. `g` is not re-weighted (it is the proposal's).
 
 Lengths in mm, coefficients in mm^-1, radiance in W mm^-2 sr^-1 (basic radiance `L / n^2`
 inside media, so refraction multiplies by the Fresnel transmittance only).
@@ -41,7 +50,6 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from .._numerics import safe_div, safe_sqrt
@@ -72,7 +80,7 @@ EPS = 1e-3  # mm: ray offsets off surfaces
 RR_WEIGHT = 0.05  # Russian roulette below this path weight (camera paths start at 1)
 RR_MIN_EVENTS = 4
 MAX_EVENTS = 1 << 17  # safety cap; walks cut here are counted in `WalkStats.truncated`
-_NU = 14  # uniform numbers per walker and event
+_NU = 16  # uniform numbers per walker and event
 _LEDGER = ("escaped", "emitter", "absorbed", "roulette", "cut")
 _WIDTHS = (1, 8, 64)  # walkers are packed into 1/k of the block as they end
 _PHASE = 8  # events between re-packings
@@ -98,18 +106,18 @@ class Proposal(eqx.Module):
 
 
 class VolumetricTerms(eqx.Module):
-    """Re-weightable records of a block of pixels (`P` pixels, `R = spp K` records per
-    channel, `Mt` materials): radiance `sum_r w f_r(sigma)` per channel."""
+    """Re-weightable records of a block of pixels (`P` pixels, `R` records each, `Mt`
+    materials): radiance `sum_r w_rc f_r(sigma_c)` in channel `c`."""
 
-    w: Float[Array, "3 P R"]  # W / (K spp): the record's share of the pixel at the proposal
-    n: Float[Array, "3 P R Mt"]  # scattering events in each medium
-    L: Float[Array, "3 P R Mt"]  # path length in each medium, mm
+    w: Float[Array, "3 P R"]  # the record's share of the pixel, per channel, at the proposal
+    n: Float[Array, "P R Mt"]  # scattering events in each medium
+    L: Float[Array, "P R Mt"]  # path length in each medium, mm
     sigma_s0: Float[Array, "Mt 3"]
     sigma_t0: Float[Array, "Mt 3"]
 
     def rows(self, rows) -> VolumetricTerms:
         return VolumetricTerms(
-            self.w[:, rows], self.n[:, rows], self.L[:, rows], self.sigma_s0, self.sigma_t0
+            self.w[:, rows], self.n[rows], self.L[rows], self.sigma_s0, self.sigma_t0
         )
 
     @staticmethod
@@ -122,8 +130,8 @@ class VolumetricTerms(eqx.Module):
         cat = jnp.concatenate
         return VolumetricTerms(
             cat([p.w for p in parts], axis=2) / k,
-            cat([p.n for p in parts], axis=2),
-            cat([p.L for p in parts], axis=2),
+            cat([p.n for p in parts], axis=1),
+            cat([p.L for p in parts], axis=1),
             parts[0].sigma_s0,
             parts[0].sigma_t0,
         )
@@ -132,10 +140,11 @@ class VolumetricTerms(eqx.Module):
 class WalkStats(eqx.Module):
     """Diagnostics of a block's walks: events (free flights and surface hits) in total, the
     longest walk, walks cut at `MAX_EVENTS` and walkers lost (numerical leaks), and where the
-    walkers' (coefficient-independent) weight went, summed over walkers: `escaped` (to the
-    background / environment), `emitter` (into a light), `absorbed` (in media and on
-    surfaces), `roulette` (net weight removed by Russian roulette, expectation 0) and `cut`
-    (walks stopped at `MAX_EVENTS` or lost). They add up to the number of walkers."""
+    walkers' weight went (each walker's analog weight in its hero channel), summed over
+    walkers: `escaped` (to the background / environment), `emitter` (into a light),
+    `absorbed` (in media and on surfaces), `roulette` (net weight removed by Russian
+    roulette, expectation 0) and `cut` (walks stopped at `MAX_EVENTS` or lost). They add up
+    to the number of walkers."""
 
     events: Array
     longest: Array
@@ -148,53 +157,39 @@ class WalkStats(eqx.Module):
     cut: Array
 
 
-def _log_factor(n, L, sigma_s, sigma_t, sigma_s0, sigma_t0):
-    """`log f = n log(sigma_s / sigma_s0) - (sigma_t - sigma_t0) L`, finite at `sigma_s = 0`
-    (then `f = 0` for `n > 0`) with finite gradients."""
-    ratio = sigma_s / sigma_s0
+def _log_factors(terms: VolumetricTerms, media) -> Float[Array, "3 P R"]:
+    """`log f = sum_m n log(sigma_s / sigma_s0) - (sigma_t - sigma_t0) L` per channel, finite
+    at `sigma_s = 0` (then `f = 0` for `n > 0`) with finite gradients."""
+    ss = jnp.stack([jnp.broadcast_to(m.sigma_s, (3,)) for m in media])  # (Mt, 3)
+    st = jnp.stack([jnp.broadcast_to(m.sigma_t, (3,)) for m in media])
+    ratio = ss / terms.sigma_s0
     pos = ratio > 0
-    log_r = jnp.where(pos, jnp.log(jnp.where(pos, ratio, 1.0)), -1e4)
-    nl = jnp.where(n > 0, n * log_r, 0.0)
-    return nl - (sigma_t - sigma_t0) * L
+    log_r = jnp.where(pos, jnp.log(jnp.where(pos, ratio, 1.0)), -1e4)  # (Mt, 3)
+    d_t = st - terms.sigma_t0
+    n, L = terms.n[None], terms.L[None]  # (1, P, R, Mt)
+    lr = jnp.moveaxis(log_r, 1, 0)[:, None, None, :]  # (3, 1, 1, Mt)
+    dt = jnp.moveaxis(d_t, 1, 0)[:, None, None, :]
+    nl = jnp.where(n > 0, n * lr, 0.0)
+    return jnp.sum(nl - dt * L, axis=-1)
 
 
 def shade_terms(terms: VolumetricTerms, media) -> Float[Array, "P 3"]:
     """Radiance `(P, 3)` of the records for `media` (a sequence, one `Medium` per material,
     coefficients in mm^-1): the exact re-weighting of the walks to these coefficients."""
-    Mt = terms.n.shape[-1]
-    if Mt == 0:
+    if terms.n.shape[-1] == 0:
         return jnp.zeros(terms.w.shape[1:2] + (3,), terms.w.dtype)
-    ss = jnp.stack([jnp.broadcast_to(m.sigma_s, (3,)) for m in media])  # (Mt, 3)
-    st = jnp.stack([jnp.broadcast_to(m.sigma_t, (3,)) for m in media])
-    out = []
-    for c in range(3):
-        lf = _log_factor(
-            terms.n[c],
-            terms.L[c],
-            ss[:, c],
-            st[:, c],
-            terms.sigma_s0[:, c],
-            terms.sigma_t0[:, c],
-        )  # (P, R, Mt)
-        out.append(jnp.sum(terms.w[c] * jnp.exp(jnp.sum(lf, axis=-1)), axis=-1))
-    return jnp.stack(out, axis=-1)
+    f = jnp.exp(_log_factors(terms, media))  # (3, P, R)
+    return jnp.sum(terms.w * f, axis=-1).T
 
 
 def effective_sample_size(terms: VolumetricTerms, media) -> tuple[Array, Array]:
     """Per pixel and channel `(P, 3)`: the effective sample size `(sum w f)^2 / sum (w f)^2`
     of the records at `media`, and its value at the proposal (`f = 1`). Their ratio falls
     from 1 as the coefficients move away from the proposal."""
-    ss = jnp.stack([jnp.broadcast_to(m.sigma_s, (3,)) for m in media])
-    st = jnp.stack([jnp.broadcast_to(m.sigma_t, (3,)) for m in media])
-    ess, ess0 = [], []
-    for c in range(3):
-        lf = _log_factor(
-            terms.n[c], terms.L[c], ss[:, c], st[:, c], terms.sigma_s0[:, c], terms.sigma_t0[:, c]
-        )
-        wf = terms.w[c] * jnp.exp(jnp.sum(lf, axis=-1))
-        ess.append(safe_div(jnp.sum(wf, -1) ** 2, jnp.sum(wf * wf, -1)))
-        ess0.append(safe_div(jnp.sum(terms.w[c], -1) ** 2, jnp.sum(terms.w[c] ** 2, -1)))
-    return jnp.stack(ess, -1), jnp.stack(ess0, -1)
+    wf = terms.w * jnp.exp(_log_factors(terms, media))
+    ess = safe_div(jnp.sum(wf, -1) ** 2, jnp.sum(wf * wf, -1))
+    ess0 = safe_div(jnp.sum(terms.w, -1) ** 2, jnp.sum(terms.w**2, -1))
+    return ess.T, ess0.T
 
 
 # --- sampling helpers ----------------------------------------------------------------------
@@ -288,15 +283,17 @@ def _area_point(la, k, u1, u2):
 
 
 # --- next-event estimation -------------------------------------------------------------
-def _nee_diffuse(vs: VolScene, x, ns, ch, u):
+# --- next-event estimation -------------------------------------------------------------
+def _nee_diffuse(vs: VolScene, x, ns, u):
     """Direct light at diffuse vertices `x` (facing normal `ns`), per unit albedo / pi:
-    `int L_e cos dw`, from one light chosen by power. **Returns:** `(W,)` irradiance."""
+    `int L_e cos dw` from one light chosen by power. **Returns:** `(W, 3)` irradiance."""
     la = vs.lights
     na, npt, nb = la.n_area, la.n_point, la.n_beam
+    W = x.shape[0]
     if na + npt + nb == 0:
-        return jnp.zeros(x.shape[0])
+        return jnp.zeros((W, 3))
     idx, p_pick = _pick_light(vs, u[:, 0])
-    E = jnp.zeros(x.shape[0])
+    E = jnp.zeros((W, 3))
     if na:
         k = jnp.minimum(idx, na - 1)
         y = _area_point(la, k, u[:, 1], u[:, 2])
@@ -308,9 +305,8 @@ def _nee_diffuse(vs: VolScene, x, ns, ch, u):
         cos_l = -_dot(w, la.normal[k])
         ok = (idx < na) & (cos_x > 0) & (cos_l > 0)
         vis = ~_occluded(vs, x + EPS * ns, w, dist * (1 - 1e-4))
-        Le = la.radiance[k, ch]
-        e = Le * la.area[k] * cos_x * cos_l * safe_div(1.0, d2)
-        E = jnp.where(ok & vis, e, E)
+        g = la.area[k] * cos_x * cos_l * safe_div(1.0, d2)
+        E = jnp.where((ok & vis)[:, None], la.radiance[k] * g[:, None], E)
     if npt:
         k = jnp.clip(idx - na, 0, npt - 1)
         w = la.position[k] - x
@@ -320,8 +316,8 @@ def _nee_diffuse(vs: VolScene, x, ns, ch, u):
         cos_x = _dot(w, ns)
         ok = (idx >= na) & (idx < na + npt) & (cos_x > 0)
         vis = ~_occluded(vs, x + EPS * ns, w, dist * (1 - 1e-4))
-        e = la.intensity[k, ch] * cos_x * safe_div(1.0, d2)
-        E = jnp.where(ok & vis, e, E)
+        g = cos_x * safe_div(1.0, d2)
+        E = jnp.where((ok & vis)[:, None], la.intensity[k] * g[:, None], E)
     if nb:
         k = jnp.clip(idx - na - npt, 0, nb - 1)
         d = la.beam_dir[k]
@@ -331,9 +327,9 @@ def _nee_diffuse(vs: VolScene, x, ns, ch, u):
         cos_x = -_dot(ns, d)
         ok = (idx >= na + npt) & (along > 0) & (radial <= la.beam_radius[k]) & (cos_x > 0)
         vis = ~_occluded(vs, x + EPS * ns, -d, along * (1 - 1e-4))
-        e = la.beam_power[k, ch] / (jnp.pi * la.beam_radius[k] ** 2) * cos_x
-        E = jnp.where(ok & vis, e, E)
-    return E / p_pick
+        g = cos_x / (jnp.pi * la.beam_radius[k] ** 2)
+        E = jnp.where((ok & vis)[:, None], la.beam_power[k] * g[:, None], E)
+    return E / p_pick[:, None]
 
 
 def _faces(vs: VolScene, obj):
@@ -405,22 +401,24 @@ def _connect_boundary(vs: VolScene, x, y, obj, eta, u_face):
     )
 
 
-def _nee_medium(vs: VolScene, x, d, obj, ch, g, sig_s0, sig_t0, u):
+def _nee_medium(vs: VolScene, x, d, obj, g, sig_s0, sig_t0, u):
     """In-scattered radiance at medium vertices `x` (the walker arrived along `d`), from one
-    light chosen by power, through the boundary of shape `obj`.
+    light chosen by power, through the boundary of shape `obj`; `g`, `sig_s0`, `sig_t0`
+    `(W, 3)` per channel.
 
-    **Returns:** `(c, dL, dn)`: the estimate at the proposal (per unit path weight), and the
-    extra length in the medium and scattering events its path adds to the walker's.
+    **Returns:** `(c (W, 3), dL, dn)`: the estimate at the proposal (per unit path weight),
+    and the extra length in the medium and scattering events its path adds.
     """
     la = vs.lights
     na, npt, nb = la.n_area, la.n_point, la.n_beam
     W = x.shape[0]
     zero = jnp.zeros(W)
+    c_out = jnp.zeros((W, 3))
     if na + npt + nb == 0:
-        return zero, zero, zero
+        return c_out, zero, zero
     eta = vs.eta[obj]
     idx, p_pick = _pick_light(vs, u[:, 0])
-    c_out, dL, dn = zero, zero, zero
+    dL, dn = zero, zero
     if na + npt:
         is_area = idx < na
         ka = jnp.minimum(idx, max(na - 1, 0))
@@ -431,30 +429,30 @@ def _nee_medium(vs: VolScene, x, d, obj, ch, g, sig_s0, sig_t0, u):
         con = _connect_boundary(vs, x, y, obj, eta, u[:, 3])
         Ft = 1.0 - fresnel_reflectance(con["cos1"], 1.0 / eta)
         vis = ~_occluded(vs, con["b"] + EPS * con["nb"], con["w2"], con["d2"] * (1 - 1e-4))
-        # a non-convex object: the inside segment must reach b first
         if vs.all_convex:
             inside_ok = True
-        else:
+        else:  # a non-convex object: the inside segment must reach b first
             t_in, _, _ = intersect_all(vs.shapes, x, con["w1"], EPS * 0.1, jnp.inf)
             inside_ok = vs.convex[obj] | (t_in >= con["d1"] * (1 - 1e-3))
-        phase = hg_phase(_dot(d, con["w1"]), g)
-        att = jnp.exp(-sig_t0 * con["d1"])
-        base = phase * Ft * att * con["G_perp"]
+        phase = hg_phase(_dot(d, con["w1"])[:, None], g)
+        att = jnp.exp(-sig_t0 * con["d1"][:, None])
+        geo = Ft * con["G_perp"]
         if na:
             cos_l = -_dot(con["w2"], la.normal[ka])
-            em_a = la.radiance[ka, ch] * la.area[ka] * jnp.maximum(cos_l, 0.0)
+            em_a = la.radiance[ka] * (la.area[ka] * jnp.maximum(cos_l, 0.0))[:, None]
         else:
-            em_a = zero
-        em_p = la.intensity[kp, ch] if npt else zero
-        em = jnp.where(is_area, em_a, em_p)
+            em_a = jnp.zeros((W, 3))
+        em_p = la.intensity[kp] if npt else jnp.zeros((W, 3))
+        em = jnp.where(is_area[:, None], em_a, em_p)
         ok = (idx < na + npt) & con["ok"] & vis & inside_ok
-        c_out = jnp.where(ok, base * em, 0.0)
+        c_out = jnp.where(ok[:, None], phase * att * geo[:, None] * em, 0.0)
         dL = jnp.where(ok, con["d1"], 0.0)
     if nb:
         is_beam = idx >= na + npt
         k = jnp.clip(idx - na - npt, 0, nb - 1)
         db = la.beam_dir[k]
-        e1 = _unit(jnp.cross(db, jnp.where(jnp.abs(db[:, :1]) < 0.9, jnp.array([1.0, 0, 0]), jnp.array([0, 1.0, 0]))))
+        ref = jnp.where(jnp.abs(db[:, :1]) < 0.9, jnp.array([1.0, 0, 0]), jnp.array([0, 1.0, 0]))
+        e1 = _unit(jnp.cross(db, ref))
         e2 = jnp.cross(db, e1)
         rho = la.beam_radius[k] * jnp.sqrt(u[:, 4])
         phi = 2.0 * jnp.pi * u[:, 5]
@@ -475,11 +473,9 @@ def _nee_medium(vs: VolScene, x, d, obj, ch, g, sig_s0, sig_t0, u):
         h = jnp.maximum(safe_sqrt(_dot(perp, perp)), 1e-6)
         th_a = jnp.arctan2(-delta, h)
         th_b = jnp.arctan2(t_max - delta, h)
-        tt = delta + h * jnp.tan(th_a + u[:, 6] * (th_b - th_a))
-        tt = jnp.clip(tt, 0.0, t_max)
+        tt = jnp.clip(delta + h * jnp.tan(th_a + u[:, 6] * (th_b - th_a)), 0.0, t_max)
         pdf = h / ((th_b - th_a) * (h * h + (tt - delta) ** 2))
-        yb = xb + tt[:, None] * din
-        v = yb - x
+        v = xb + tt[:, None] * din - x
         r2 = jnp.maximum(_dot(v, v), 1e-12)
         r = jnp.sqrt(r2)
         w = v / r[:, None]
@@ -488,24 +484,16 @@ def _nee_medium(vs: VolScene, x, d, obj, ch, g, sig_s0, sig_t0, u):
         else:
             t_seg, _, _ = intersect_all(vs.shapes, x, w, EPS * 0.1, jnp.inf)
             seg_ok = vs.convex[obj] | (t_seg >= r * (1 - 1e-3))
-        ph_x = hg_phase(_dot(d, w), g)
-        ph_y = hg_phase(_dot(din, -w), g)
+        ph_x = hg_phase(_dot(d, w)[:, None], g)
+        ph_y = hg_phase(_dot(din, -w)[:, None], g)
         # the beam's flux inside gives actual radiance: / eta^2 for basic radiance
-        cb = (
-            ph_x
-            * la.beam_power[k, ch]
-            * Ft_b
-            / (eta * eta)
-            * sig_s0
-            * ph_y
-            * jnp.exp(-sig_t0 * (tt + r))
-            / (r2 * jnp.maximum(pdf, 1e-30))
-        )
+        scal = Ft_b / (eta * eta) / (r2 * jnp.maximum(pdf, 1e-30))
+        cb = ph_x * ph_y * la.beam_power[k] * sig_s0 * jnp.exp(-sig_t0 * (tt + r)[:, None])
         okb = is_beam & hit & ok_r & (t_max > 0) & (th_b > th_a) & seg_ok
-        c_out = jnp.where(okb, cb, c_out)
+        c_out = jnp.where(okb[:, None], cb * scal[:, None], c_out)
         dL = jnp.where(okb, tt + r, dL)
         dn = jnp.where(okb, 1.0, dn)
-    return c_out / p_pick, dL, dn
+    return c_out / p_pick[:, None], dL, dn
 
 
 class _BeamEntry(eqx.Module):
@@ -534,24 +522,37 @@ def _beam_entry(vs: VolScene) -> _BeamEntry:
     din, ok_r = refract_dir(d, n, eta)
     cos_t = -_dot(n, din)
     es = jnp.cross(d, n)
-    alt = jnp.cross(din, jnp.where(jnp.abs(din[:, :1]) < 0.9, jnp.array([1.0, 0, 0]), jnp.array([0, 1.0, 0])))
+    alt = jnp.cross(
+        din, jnp.where(jnp.abs(din[:, :1]) < 0.9, jnp.array([1.0, 0, 0]), jnp.array([0, 1.0, 0]))
+    )
     es = _unit(jnp.where((_dot(es, es) > 1e-12)[:, None], es, alt))
     ep = jnp.cross(es, din)
     ap = la.beam_radius * cos_t / jnp.maximum(cos_i, 1e-6)
     as_ = la.beam_radius
     Ft = 1.0 - fresnel_reflectance(cos_i, eta)
     E = la.beam_power * (Ft / (jnp.pi * ap * as_))[:, None]
-    return _BeamEntry(x0, din, ep, es, ap, as_, jnp.where((ok & ok_r)[:, None], E, 0.0), jnp.where(ok & ok_r, sid, -1))
+    return _BeamEntry(
+        x0,
+        din,
+        ep,
+        es,
+        ap,
+        as_,
+        jnp.where((ok & ok_r)[:, None], E, 0.0),
+        jnp.where(ok & ok_r, sid, -1),
+    )
 
 
-def _beam_segment(be: _BeamEntry, vs: VolScene, o, d, seg, obj, ch, g, sig_s0, sig_t0, u):
+def _beam_segment(be: _BeamEntry, vs: VolScene, o, d, seg, obj, g, sig_s0, sig_t0, u):
     """Single scattering of a beam on the walkers' medium segments `[o, o + seg d]` (those
     that start at a specular event: scattering vertices reach beams by next-event
     estimation): one point sampled uniformly on the segment's overlap with the refracted
     beam, `length sigma_s0 p E_perp exp(-sigma_t0 t_beam) / eta^2` (basic radiance).
 
-    **Returns:** `(c, dL)`: the estimate per unit path weight and the length its path adds
-    (one scattering event is added by the caller)."""
+    **Returns:** `(c (W, 3), s, dL)`: the estimate per unit path weight (without the
+    transmittance from `o` to the point, which the caller's path weight carries), the
+    point's distance along the segment and the length its path adds (one scattering event
+    is added by the caller)."""
     Lb = be.x0.shape[0]
     k = jnp.minimum(jnp.floor(u[:, 0] * Lb), Lb - 1).astype(jnp.int32)
     q = o - be.x0[k]
@@ -577,17 +578,11 @@ def _beam_segment(be: _BeamEntry, vs: VolScene, o, d, seg, obj, ch, g, sig_s0, s
     su = lo + u[:, 1] * length
     tb = jnp.maximum(qd + su * dd, 0.0)
     eta = vs.eta[jnp.maximum(obj, 0)]
-    c = (
-        length
-        * sig_s0
-        * hg_phase(-_dot(din, d), g)
-        * be.E_perp[k, ch]
-        * jnp.exp(-sig_t0 * tb)
-        / (eta * eta)
-        * Lb
-    )
     ok = (be.sid[k] == obj) & (length > 0)
-    return jnp.where(ok, c, 0.0), jnp.where(ok, su + tb, 0.0)
+    scal = jnp.where(ok, length / (eta * eta) * Lb, 0.0)
+    c = sig_s0 * hg_phase(-_dot(din, d)[:, None], g) * be.E_perp[k]
+    c = c * jnp.exp(-sig_t0 * tb[:, None]) * scal[:, None]
+    return c, jnp.where(ok, su, 0.0), jnp.where(ok, su + tb, 0.0)
 
 
 def _covered(vs: VolScene, obj, x, n):
@@ -603,17 +598,20 @@ def _covered(vs: VolScene, obj, x, n):
 
 
 # --- the walk ------------------------------------------------------------------------------
-def _init_state(o, d, ch, K, Mt):
+def _init_state(o, d, hero, K, Mt, seed):
     W = o.shape[0]
-    z = jnp.zeros(W)
+    z3 = jnp.zeros((W, 3))
     f = jnp.zeros(W, bool)
     return dict(
         o=o,
         d=d,
-        ch=ch,
-        thr=jnp.ones(W),
+        hero=hero,
+        thr=jnp.ones((W, 3)),  # surface throughput per channel (albedo, reflectance, roulette)
+        lf=z3,  # log of the medium part of the path's contribution, per channel, at the proposal
+        lp=z3,  # log of the medium part of its density under each channel's proposal
         med=jnp.full(W, -1, jnp.int32),
         obj=jnp.full(W, -1, jnp.int32),
+        self_sid=jnp.full(W, -1, jnp.int32),
         n=jnp.zeros((W, Mt)),
         L=jnp.zeros((W, Mt)),
         touched=f,
@@ -622,50 +620,78 @@ def _init_state(o, d, ch, K, Mt):
         alive=jnp.ones(W, bool),
         events=jnp.zeros(W, jnp.int32),
         lost=f,
-        ledger=jnp.zeros((W, 5)),
-        self_sid=jnp.full(W, -1, jnp.int32),
-        base=z,
-        wsum=z,
+        ledger=jnp.zeros((W, len(_LEDGER))),
+        base=z3,
+        wsum=jnp.zeros(W),
         res_n=jnp.zeros((W, K, Mt)),
         res_L=jnp.zeros((W, K, Mt)),
+        res_a=jnp.zeros((W, K, 3)),
+        seed=seed,
     )
 
 
+def _weights(thr, lf, lp, hero, mis: bool):
+    """Each channel's path weight `(W, 3)`: `thr_c f_c / mean_k P_k` (spectral MIS), or the
+    hero channel's own `thr_h f_h / P_h` and 0 elsewhere (`separate`)."""
+    if mis:
+        top = jnp.max(lp, axis=-1, keepdims=True)
+        lm = top + jnp.log(jnp.mean(jnp.exp(lp - top), axis=-1, keepdims=True))
+        return thr * jnp.exp(lf - lm)
+    onehot = jnp.arange(3)[None, :] == hero[:, None]
+    return jnp.where(onehot, thr * jnp.exp(lf - lp), 0.0)
+
+
+def _hero(a, hero):
+    return jnp.take_along_axis(a, hero[:, None], axis=1)[:, 0]
+
+
 def _deposit(st, contrib, n_c, L_c, u_res):
-    """Add contributions `contrib (W,)` (at the proposal) with statistics `(n_c, L_c)`:
-    to `base` for paths that never entered a medium, else to the weighted reservoir."""
-    to_res = st["touched"] & (contrib > 0)
-    base = st["base"] + jnp.where(st["touched"], 0.0, contrib)
-    wsum = st["wsum"] + jnp.where(to_res, contrib, 0.0)
-    p = safe_div(contrib, wsum)
+    """Add contributions `contrib (W, 3)` (at the proposal) with statistics `(n_c, L_c)`:
+    to `base` for paths that never entered a medium, else to the weighted reservoir (chosen
+    in proportion to the channels' sum, each record keeping the channels' shares)."""
+    q = jnp.sum(contrib, axis=-1)
+    to_res = st["touched"] & (q > 0)
+    base = st["base"] + jnp.where(st["touched"][:, None], 0.0, contrib)
+    wsum = st["wsum"] + jnp.where(to_res, q, 0.0)
+    p = safe_div(q, wsum)
     take = to_res[:, None] & (u_res < p[:, None])  # (W, K)
-    res_n = jnp.where(take[..., None], n_c[:, None, :], st["res_n"])
-    res_L = jnp.where(take[..., None], L_c[:, None, :], st["res_L"])
-    return dict(st, base=base, wsum=wsum, res_n=res_n, res_L=res_L)
+    a = contrib * safe_div(1.0, q)[:, None]
+    return dict(
+        st,
+        base=base,
+        wsum=wsum,
+        res_n=jnp.where(take[..., None], n_c[:, None, :], st["res_n"]),
+        res_L=jnp.where(take[..., None], L_c[:, None, :], st["res_L"]),
+        res_a=jnp.where(take[..., None], a[:, None, :], st["res_a"]),
+    )
 
 
-def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee: bool = True, be=None):
+def _safe_log(x):
+    pos = x > 0
+    return jnp.where(pos, jnp.log(jnp.where(pos, x, 1.0)), -jnp.inf)
+
+
+def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee=True, be=None, mis=True):
     """One event for every walker: a free flight inside a medium, or a hit outside.
     `be`: the scene's beams as they enter media (`_beam_entry`), or None without beams."""
-    o, d, ch, thr = st["o"], st["d"], st["ch"], st["thr"]
-    K = st["res_n"].shape[1]
+    o, d, thr, lf, lp, hero = st["o"], st["d"], st["thr"], st["lf"], st["lp"], st["hero"]
     alive, med, obj = st["alive"], st["med"], st["obj"]
+    K = st["res_n"].shape[1]
     W = o.shape[0]
     Mt = vs.n_materials
     inside = med >= 0
     m = jnp.maximum(med, 0)
     onehot = (jnp.arange(max(Mt, 1))[None, :] == m[:, None]) & inside[:, None]
-    onehot = onehot[:, :Mt].astype(thr.dtype)
+    onehot = onehot[:, :Mt].astype(o.dtype)
     if Mt:
-        sig_t0 = prop.sigma_t[m, ch]
-        sig_s0 = prop.sigma_s[m, ch]
-        g = prop.g[m, ch]
+        st0, ss0, g3 = prop.sigma_t[m], prop.sigma_s[m], prop.g[m]  # (W, 3)
     else:
-        sig_t0 = sig_s0 = g = jnp.ones(W)
+        st0 = ss0 = jnp.ones((W, 3))
+        g3 = jnp.zeros((W, 3))
+    st0h, gh = _hero(st0, hero), _hero(g3, hero)
     t, nrm, sid = _intersect_walkers(vs, o, d, obj, st["self_sid"])
     tl, rad = vs.lights.intersect(o, d, t)
-    rad_c = jnp.take_along_axis(rad, ch[:, None], axis=1)[:, 0]
-    s = -jnp.log1p(-u[:, 0]) / sig_t0
+    s = -jnp.log1p(-u[:, 0]) / st0h
     scatter = alive & inside & (s < t)
     bnd = alive & inside & ~scatter & (sid >= 0)
     leak = alive & inside & ~scatter & (sid < 0)
@@ -684,103 +710,120 @@ def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee: bool = True, be=None)
     cos = -_dot(d, nrm)  # > 0 when hitting the outside of a surface
     ns = jnp.where((cos >= 0)[:, None], nrm, -nrm)
 
-    # scattering in a medium: count the event, estimate the light it sends back
-    thr_s = thr * jnp.where(scatter, sig_s0 / sig_t0, 1.0)
+    # the medium part of the path: the flight (to the scattering point or the boundary)
+    seg = jnp.where(scatter, s, jnp.where(bnd, t_hit, 0.0))
+    lf_n = lf - st0 * seg[:, None] + jnp.where(scatter[:, None], _safe_log(ss0), 0.0)
+    lp_n = lp - st0 * seg[:, None] + jnp.where(scatter[:, None], _safe_log(st0), 0.0)
     n_new = st["n"] + jnp.where(scatter[:, None], onehot, 0.0)
-    L_new = st["L"] + onehot * jnp.where(scatter, s, jnp.where(bnd, t_hit, 0.0))[:, None]
+    L_new = st["L"] + onehot * seg[:, None]
+    w_prev = _weights(thr, lf, lp, hero, mis)
+    w_sc = _weights(thr, lf_n, lp_n, hero, mis)
+
+    # contributions: light scattered at the vertex, direct light on diffuse surfaces,
+    # emitters and the environment seen
+    obj0 = jnp.maximum(obj, 0)
     c_med, dL, dn = jax.lax.cond(
         jnp.any(scatter) & nee,
-        lambda: _nee_medium(vs, x_s, d, jnp.maximum(obj, 0), ch, g, sig_s0, sig_t0, u[:, 1:8]),
-        lambda: (jnp.zeros(W, thr.dtype),) * 3,
+        lambda: _nee_medium(vs, x_s, d, obj0, g3, ss0, st0, u[:, 1:8]),
+        lambda: (jnp.zeros((W, 3)), jnp.zeros(W), jnp.zeros(W)),
     )
-    # diffuse surfaces: direct light
     E = jax.lax.cond(
         jnp.any(diffuse),
-        lambda: _nee_diffuse(vs, x_t, ns, ch, u[:, 1:4]),
-        lambda: jnp.zeros(W, thr.dtype),
+        lambda: _nee_diffuse(vs, x_t, ns, u[:, 1:4]),
+        lambda: jnp.zeros((W, 3)),
     )
-    alb = jnp.take_along_axis(vs.albedo[sidc], ch[:, None], axis=1)[:, 0]
-    contrib = jnp.where(scatter, thr_s * c_med, 0.0)
-    contrib = contrib + jnp.where(diffuse, thr * alb / jnp.pi * E, 0.0)
-    contrib = contrib + jnp.where(hit_light & ~st["skip_em"], thr * rad_c, 0.0)
-    contrib = contrib + jnp.where(miss, thr * vs.env[ch], 0.0)
+    alb = vs.albedo[sidc]
+    contrib = jnp.where(scatter[:, None], w_sc * c_med, 0.0)
+    contrib += jnp.where(diffuse[:, None], w_prev * alb / jnp.pi * E, 0.0)
+    contrib += jnp.where((hit_light & ~st["skip_em"])[:, None], w_prev * rad, 0.0)
+    contrib += jnp.where(miss[:, None], w_prev * vs.env, 0.0)
     n_c = n_new + jnp.where(scatter, dn, 0.0)[:, None] * onehot
     L_c = L_new + jnp.where(scatter, dL, 0.0)[:, None] * onehot
-    new = _deposit(dict(st, n=n_new, L=L_new), contrib, n_c, L_c, u_res[:, :K])
+    new = _deposit(st, contrib, n_c, L_c, u_res[:, :K])
     if be is not None:  # beams: their single scattering on segments that start specular
-        seg = jnp.where(scatter, s, t_hit)
-        c_b, dL_b = _beam_segment(be, vs, o, d, seg, obj, ch, g, sig_s0, sig_t0, u[:, 12:14])
+        c_b, su, dL_b = _beam_segment(be, vs, o, d, seg, obj, g3, ss0, st0, u[:, 12:14])
+        w_b = _weights(thr, lf - st0 * su[:, None], lp - st0 * su[:, None], hero, mis)
         on = (scatter | bnd) & ~st["after_scatter"]
-        c_b = jnp.where(on, thr * c_b, 0.0)
+        c_b = jnp.where(on[:, None], w_b * c_b, 0.0)
         new = _deposit(new, c_b, st["n"] + onehot, st["L"] + dL_b[:, None] * onehot, u_res[:, K:])
 
-    # next directions
-    d_hg = _around(d, _hg_cos(u[:, 8], g), 2.0 * jnp.pi * u[:, 9])
-    d_cos = _around(ns, jnp.sqrt(1.0 - u[:, 8]), 2.0 * jnp.pi * u[:, 9])
+    # next directions: the phase function (hero's g) or a cosine-weighted bounce
+    axis = jnp.where(scatter[:, None], d, ns)
+    cos_t = jnp.where(scatter, _hg_cos(u[:, 8], gh), jnp.sqrt(1.0 - u[:, 8]))
+    d_bounce = _around(axis, cos_t, 2.0 * jnp.pi * u[:, 9])
+    ph = jnp.log(hg_phase(cos_t[:, None], g3))  # f and every channel's density: MIS over g
+    lf_n = lf_n + jnp.where(scatter[:, None], ph, 0.0)
+    lp_n = lp_n + jnp.where(scatter[:, None], ph, 0.0)
     d_mir = d + 2.0 * cos[:, None] * nrm  # reflection about the surface
+    # dielectric boundaries: from inside (relative index 1 / eta) or from outside (eta)
     eta_s = vs.eta[sidc]
-    # boundary from inside: Fresnel into the outside (relative index 1 / eta)
-    F_in = fresnel_reflectance(cos, 1.0 / eta_s)
-    refl_in = bnd & (u[:, 10] < F_in)
-    exit_ = bnd & ~refl_in
-    d_out, _ = refract_dir(d, -nrm, 1.0 / eta_s)
-    # translucent surface from outside
-    F_out = fresnel_reflectance(cos, eta_s)
+    eta_rel = jnp.where(bnd, 1.0 / eta_s, eta_s)
+    F = fresnel_reflectance(cos, eta_rel)
     front = transl & (cos > 0)
-    refl_out = front & (u[:, 10] < F_out)
+    through = transl & ~front  # hit from behind (grazing, numerical): pass on
+    refl_in = bnd & (u[:, 10] < F)
+    exit_ = bnd & ~refl_in
+    refl_out = front & (u[:, 10] < F)
     enter = front & ~refl_out
-    through = transl & ~front  # grazing / numerical: pass on
-    d_in, _ = refract_dir(d, nrm, eta_s)
+    d_ref, _ = refract_dir(d, jnp.where(bnd[:, None], -nrm, nrm), eta_rel)
 
     spec = mirror | refl_out | refl_in
-    d_next = jnp.where(scatter[:, None], d_hg, d)
-    d_next = jnp.where(diffuse[:, None], d_cos, d_next)
+    d_next = jnp.where((scatter | diffuse)[:, None], d_bounce, d)
     d_next = jnp.where(spec[:, None], d_mir, d_next)
-    d_next = jnp.where(exit_[:, None], d_out, d_next)
-    d_next = jnp.where(enter[:, None], d_in, d_next)
-    o_next = jnp.where(scatter[:, None], x_s, o)
+    d_next = jnp.where((exit_ | enter)[:, None], d_ref, d_next)
     # surface events leave from the surface point itself (`_intersect_walkers` skips it)
-    o_next = jnp.where((diffuse | mirror | transl | bnd)[:, None], x_t, o_next)
-    self_n = jnp.where(diffuse | mirror | transl | bnd, sid, -1)
+    on_surface = diffuse | mirror | transl | bnd
+    o_next = jnp.where(scatter[:, None], x_s, jnp.where(on_surface[:, None], x_t, o))
 
-    refl = jnp.take_along_axis(vs.reflectance[sidc], ch[:, None], axis=1)[:, 0]
-    thr_n = jnp.where(diffuse, thr * alb, thr_s)
-    thr_n = jnp.where(mirror, thr * refl, thr_n)
-    mat_s = vs.mat[sidc]
-    med_n = jnp.where(enter, mat_s, jnp.where(exit_, -1, med))
+    refl = vs.reflectance[sidc]
+    thr_n = jnp.where(diffuse[:, None], thr * alb, jnp.where(mirror[:, None], thr * refl, thr))
+    med_n = jnp.where(enter, vs.mat[sidc], jnp.where(exit_, -1, med))
     obj_n = jnp.where(enter, sid, jnp.where(exit_, -1, obj))
-    covered = _covered(vs, jnp.maximum(obj, 0), x_t, nrm)
+    covered = _covered(vs, obj0, x_t, nrm)
     skip = jnp.where(diffuse, True, st["skip_em"])
     skip = jnp.where(mirror | refl_out | enter | through, False, skip)
     skip = jnp.where(exit_, st["after_scatter"] & covered & nee, skip)
     after = jnp.where(scatter, True, jnp.where(refl_in | exit_ | enter, False, st["after_scatter"]))
     events = st["events"] + alive.astype(jnp.int32)
-    # Russian roulette on the coefficient-independent weight, after scattering or diffuse
-    rr = (scatter | diffuse) & (events >= RR_MIN_EVENTS) & (thr_n < RR_WEIGHT)
-    survive = u[:, 11] * RR_WEIGHT < thr_n
-    thr_rr = jnp.where(rr, jnp.where(survive, RR_WEIGHT, 0.0), thr_n)
+    # Russian roulette on the largest channel weight, after scattering or a diffuse bounce
+    w_new = _weights(thr_n, lf_n, lp_n, hero, mis)
+    w_max = jnp.max(w_new, axis=-1)
+    rr = (scatter | diffuse) & (events >= RR_MIN_EVENTS) & (w_max < RR_WEIGHT)
+    q = w_max / RR_WEIGHT
+    survive = u[:, 11] < q
+    thr_rr = jnp.where(
+        rr[:, None], jnp.where(survive[:, None], thr_n * safe_div(1.0, q)[:, None], 0.0), thr_n
+    )
     cut = alive & ((events >= MAX_EVENTS) | leak)
     dead = hit_light | miss | cut | (rr & ~survive)
-    dead = dead | (diffuse & (alb <= 0)) | (mirror & (refl <= 0))
-    # where each walker's weight goes: the columns of `ledger` add up to its start weight
+    dead = dead | (diffuse & (jnp.max(alb, -1) <= 0)) | (mirror & (jnp.max(refl, -1) <= 0))
+    # where each walker's (hero channel's analog) weight goes: adds up to its start weight
+    a0 = _hero(thr, hero) * jnp.exp(_hero(lf, hero) - _hero(lp, hero))
+    a1 = _hero(thr_n, hero) * jnp.exp(_hero(lf_n, hero) - _hero(lp_n, hero))
+    a2 = _hero(thr_rr, hero) * jnp.exp(_hero(lf_n, hero) - _hero(lp_n, hero))
+    a0 = jnp.where(alive, a0, 0.0)
     ledger = st["ledger"] + jnp.stack(
         [
-            jnp.where(miss, thr, 0.0),
-            jnp.where(hit_light, thr, 0.0),
-            jnp.where(scatter | diffuse | mirror, thr - thr_n, 0.0),
-            thr_n - thr_rr,
-            jnp.where(cut & ~hit_light & ~miss, thr_rr, 0.0),
+            jnp.where(miss, a0, 0.0),
+            jnp.where(hit_light, a0, 0.0),
+            jnp.where(scatter | diffuse | mirror, a0 - a1, 0.0),
+            jnp.where(alive, a1 - a2, 0.0),
+            jnp.where(cut & ~hit_light & ~miss, a2, 0.0),
         ],
         axis=1,
     )
-    thr_n = thr_rr
     return dict(
         new,
         o=o_next,
         d=d_next,
-        thr=thr_n,
+        thr=thr_rr,
+        lf=lf_n,
+        lp=lp_n,
         med=med_n,
         obj=obj_n,
+        self_sid=jnp.where(on_surface, sid, -1),
+        n=n_new,
+        L=L_new,
         touched=st["touched"] | enter,
         skip_em=skip,
         after_scatter=after,
@@ -788,11 +831,10 @@ def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee: bool = True, be=None)
         events=events,
         lost=st["lost"] | leak,
         ledger=ledger,
-        self_sid=self_n,
     )
 
 
-def _walk(vs: VolScene, prop: Proposal, st: dict, K: int, nee: bool = True) -> dict:
+def _walk(vs: VolScene, prop: Proposal, st: dict, nee: bool = True, mis: bool = True) -> dict:
     """Run every walker of `st` to its end.
 
     Most walkers end within a few events (on the background, a light, or by roulette) while
@@ -802,6 +844,7 @@ def _walk(vs: VolScene, prop: Proposal, st: dict, K: int, nee: bool = True) -> d
     numbers, so the result does not depend on the packing.
     """
     W = st["alive"].shape[0]
+    K = st["res_n"].shape[1]
     widths = sorted({max(-(-W // k), 1) for k in _WIDTHS})
     be = _beam_entry(vs) if vs.lights.n_beam else None
 
@@ -817,8 +860,8 @@ def _walk(vs: VolScene, prop: Proposal, st: dict, K: int, nee: bool = True) -> d
                 }
 
             def body(j, sub):
-                u = _uniforms(sub["seed"], i + j, _NU + 2 * K).astype(sub["thr"].dtype)
-                return _step(vs, prop, sub, u[:, :_NU], u[:, _NU:], nee, be)
+                u = _uniforms(sub["seed"], i + j, _NU + 2 * K).astype(sub["o"].dtype)
+                return _step(vs, prop, sub, u[:, :_NU], u[:, _NU:], nee, be, mis)
 
             sub = jax.lax.fori_loop(0, _PHASE, body, sub)
             if width == W:
@@ -849,8 +892,10 @@ def trace_block(
     spp: int,
     K: int = 4,
     nee: bool = True,
+    spectral: str = "mis",
 ) -> tuple[Float[Array, "P 3"], VolumetricTerms, WalkStats]:
-    """Walk `spp` camera samples x 3 channels for each of `pixels` (flat indices).
+    """Walk `spp` camera samples for each of `pixels` (flat indices): one walker per sample
+    for all channels (`spectral="mis"`) or one per channel (`"separate"`).
 
     **Returns:** `(base (P, 3), terms, stats)`: the coefficient-independent radiance (paths
     that never entered a medium), the re-weightable records of the rest, and diagnostics.
@@ -858,24 +903,33 @@ def trace_block(
     off next-event estimation inside media (light then reaches them through random exits
     only: the same expectation, more noise; for tests).
     """
+    if spectral not in ("mis", "separate"):
+        raise ValueError(f"spectral must be 'mis' or 'separate', got {spectral!r}")
+    mis = spectral == "mis"
     P = pixels.shape[0]
     Mt = vs.n_materials
     k_cam, k_walk = jax.random.split(key)
     o, d = camera_rays(camera, pixels, stratified_2d(k_cam, spp, (P,)))  # (P, S, 3)
-    o = jnp.repeat(o.reshape(P * spp, 3), 3, axis=0)
-    d = jnp.repeat(d.reshape(P * spp, 3), 3, axis=0)
-    W = P * spp * 3
-    ch = jnp.tile(jnp.arange(3, dtype=jnp.int32), P * spp)
-    st = _init_state(o, d, ch, K, Mt)
-
-    st["seed"] = jax.random.bits(k_walk, (W,), jnp.uint32)
-    st = _walk(vs, prop, st, K, nee)
-    base = st["base"].reshape(P, spp, 3).mean(axis=1)
-    wrec = (st["wsum"] / (K * spp)).reshape(P, spp, 3)
-    w = jnp.broadcast_to(wrec[:, :, None, :], (P, spp, K, 3)).reshape(P, spp * K, 3)
-    n = st["res_n"].reshape(P, spp, 3, K, Mt).transpose(2, 0, 1, 3, 4).reshape(3, P, spp * K, Mt)
-    L = st["res_L"].reshape(P, spp, 3, K, Mt).transpose(2, 0, 1, 3, 4).reshape(3, P, spp * K, Mt)
-    terms = VolumetricTerms(jnp.moveaxis(w, -1, 0), n, L, prop.sigma_s, prop.sigma_t)
+    per = 1 if mis else 3  # walkers per camera sample
+    o = jnp.repeat(o.reshape(P * spp, 3), per, axis=0)
+    d = jnp.repeat(d.reshape(P * spp, 3), per, axis=0)
+    W = P * spp * per
+    seed = jax.random.bits(k_walk, (W,), jnp.uint32)
+    if mis:
+        hero = (_pcg(seed ^ jnp.uint32(0x68E31DA4)) % jnp.uint32(3)).astype(jnp.int32)
+    else:
+        hero = jnp.tile(jnp.arange(3, dtype=jnp.int32), P * spp)
+    st = _walk(vs, prop, _init_state(o, d, hero, K, Mt, seed), nee, mis)
+    Sw = spp * per  # walkers per pixel
+    base = st["base"].reshape(P, Sw, 3).sum(axis=1) / spp
+    w = (st["wsum"] / (K * spp))[:, None, None] * st["res_a"]  # (W, K, 3)
+    terms = VolumetricTerms(
+        jnp.moveaxis(w.reshape(P, Sw * K, 3), -1, 0),
+        st["res_n"].reshape(P, Sw * K, Mt),
+        st["res_L"].reshape(P, Sw * K, Mt),
+        prop.sigma_s,
+        prop.sigma_t,
+    )
     stats = WalkStats(
         events=jnp.sum(st["events"]),
         longest=jnp.max(st["events"]),
