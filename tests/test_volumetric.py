@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from radiance_reference import radiance_profile
 
 import sssjax
 from sssjax import Medium
@@ -15,8 +16,6 @@ from sssjax.dipole import fresnel_reflectance, hg_phase
 from sssjax.transport import _connect as C
 from sssjax.transport import volumetric as V
 from sssjax.transport._volscene import VolScene
-
-from radiance_reference import radiance_profile
 
 _FNS: dict = {}
 
@@ -93,7 +92,6 @@ def test_sphere_connections_are_refracted_paths_and_G_gives_the_lights_solid_ang
     """Sum over refraction points of G over the light's area (light samples) equals the solid
     angle of the directions at x whose exit rays hit the light (direction samples)."""
     R, eta = 10.0, 1.4
-    cen = np.zeros(3)
     rng = np.random.default_rng(1)
     corner, eu, ev = np.array([-6.0, 14.0, -4.0]), np.array([12.0, 0, 0]), np.array([0, 0, 8.0])
     nl = np.array([0.0, -1.0, 0.0])
