@@ -39,7 +39,9 @@ def materials_table(profile: str = "dipole") -> str:
             f"{trip(m.diffuse_mean_free_path, '{:6.2f}'):<22}"
         )
     names = {"dipole": "the classic dipole", "better_dipole": "the better dipole", "pbd": "PBD"}
-    lines.append(f"(Jensen et al. 2001; g = 0, eta = 1.3; total R_d of {names[profile]})")
+    lines.append(
+        f"(Jensen et al. 2001; g = 0, eta = 1.3; total R_d of {names.get(profile, profile)})"
+    )
     return "\n".join(lines)
 
 
@@ -69,44 +71,14 @@ def render_to_files(
     """Render `scene` with a progress bar and write every path in `outputs`."""
     import time
 
-    from ._version import __version__
-    from .imageio import write_image
+    from .imageio import render_metadata, write_image
     from .render import render
 
     t0 = time.perf_counter()
     seed = scene.render.seed if seed is None else seed
     image = render(scene, seed, progress=not quiet)
     dt = time.perf_counter() - t0
-    meta = {
-        "scene": scene.path or "<dict>",
-        "spp": scene.render.spp,
-        "seed": seed,
-        "sss": scene.sss.enabled,
-        "version": __version__,
-        "units": "radiance; lengths mm, coefficients 1/mm",
-        "media": {
-            n: {
-                "sigma_a": np.asarray(m.sigma_a).tolist(),
-                "sigma_s": np.asarray(m.sigma_s).tolist(),
-                "g": float(np.asarray(m.g).mean()),
-                "eta": float(m.eta),
-            }
-            for n, m in scene.media().items()
-        },
-    }
-    if scene.camera.projection == "orthographic":
-        meta["pixel_size_mm"] = scene.camera.pixel_size_mm
-    beams = [b for b in scene.lights if type(b).__name__ == "BeamLight"]
-    if beams:
-        meta["beams"] = [
-            {
-                "position": np.asarray(b.position).tolist(),
-                "direction": np.asarray(b.direction).tolist(),
-                "radius": float(b.radius),
-                "power": np.asarray(b.power).tolist(),
-            }
-            for b in beams
-        ]
+    meta = render_metadata(scene, seed=seed)
     protect = _scene_inputs(scene)
     written = []
     for out in outputs:
@@ -349,6 +321,7 @@ def _cmd_preview(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     from ._version import __version__
+    from .profiles import PROFILES
 
     p = argparse.ArgumentParser(
         prog="sssjax",
@@ -361,7 +334,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--profile",
         default="dipole",
-        choices=["dipole", "better_dipole", "pbd"],
+        choices=PROFILES,
         help="diffusion profile for the total reflectance column",
     )
     s.set_defaults(func=_cmd_materials)
@@ -430,7 +403,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--model",
         default="dipole",
-        choices=["dipole", "better_dipole", "pbd"],
+        choices=PROFILES,
         help="diffusion profile to fit (default: the classic dipole; see docs/accuracy.md)",
     )
     s.add_argument("--incidence", type=float, default=0.0, help="beam angle from normal, deg")

@@ -41,6 +41,7 @@ from . import dipole
 from .camera import camera_rays
 from .lights import LightArrays, beam_irradiance, direct_irradiance
 from .sampling import stratified_1d, stratified_2d
+from .scattering import refract
 from .scene import Scene
 from .shapes import intersect_all
 
@@ -139,22 +140,6 @@ class Cloud(eqx.Module):
     # into the medium (W, Fresnel transmittance included; zero if it hit something else)
     beam_points: Float[Array, "No Nb 3"]
     beam_flux: Float[Array, "No Nb 3"]
-
-
-def refract(d: Array, n: Array, eta: Array) -> tuple[Array, Array]:
-    """Refract unit direction `d` at a boundary with unit normal `n` (`d . n < 0`).
-
-    `eta = n_t / n_i`. **Returns:** `(t, ok)`, the refracted unit direction and whether it
-    exists (False under total internal reflection).
-    """
-    cos_i = -jnp.sum(d * n, axis=-1, keepdims=True)
-    inv = 1.0 / eta
-    sin2_t = inv**2 * (1.0 - cos_i**2)
-    ok = sin2_t < 1.0
-    cos_t = jnp.sqrt(jnp.where(ok, 1.0 - sin2_t, 1.0))
-    t = inv * d + (inv * cos_i - cos_t) * n
-    t = t / jnp.linalg.norm(t, axis=-1, keepdims=True)
-    return t, ok[..., 0]
 
 
 def disc_node_weights(r_nodes: np.ndarray, r0: float, du: float, R: float) -> np.ndarray:
