@@ -13,15 +13,16 @@ Public API:
 - `fit`: recover `sigma_a`, `sigma_s` from a target image (trace once, shade per step).
 """
 
-from . import dipole, imageio
+from . import dipole, imageio, profiles, scattering, transport
+from ._arrays import MaterialKind, SceneArrays
 from ._version import __version__
 from .fit import FitResult, fit
 from .media import PRESETS, Medium, preset, preset_names
 from .raytree import RayTree, raytree
-from .render import render
-from .scene import Scene, SceneError, load_scene
+from .render import render, trace
+from .scene import Scene, SceneError, dump_scene, load_scene
 from .shade import shade, shade_image
-from .trace import Transport, trace
+from .transport import TRANSPORTS, Transport
 
 __all__ = [
     "__version__",
@@ -30,10 +31,17 @@ __all__ = [
     "preset",
     "preset_names",
     "dipole",
+    "profiles",
+    "scattering",
+    "transport",
     "imageio",
     "Scene",
     "SceneError",
     "load_scene",
+    "dump_scene",
+    "SceneArrays",
+    "MaterialKind",
+    "TRANSPORTS",
     "trace",
     "shade",
     "shade_image",

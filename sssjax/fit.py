@@ -33,7 +33,6 @@ from ._solvers import NormalGaussNewton, NormalLevenbergMarquardt
 from .media import Medium
 from .render import as_key, renderer_for
 from .scene import Scene, did_you_mean
-from .shade import ShadingTerms, prepare, shade_prepared
 
 __all__ = ["fit", "FitResult", "FitError", "PARAM_FIELDS"]
 
@@ -722,11 +721,9 @@ def _trace_data(renderer, gains, key, tgt, mask, progress, media0, etas=None):
         if len(pix) == 0:
             raise FitError("no pixel sees a translucent object: nothing to fit")
         rows_sel = np.arange(len(pix))
-    # eta is held in a fit: fold its Fresnel factors into the weights once, here
-    etas = [media0[n].eta for n in transport.materials]
     sel = jnp.asarray(rows_sel)
     return dict(
-        sub=[prepare(t.sss_terms(), etas).rows(sel) for t in transports],
+        sub=[t.terms.rows(sel) for t in transports],
         tgt=tgt.reshape(-1, 3)[pix[rows_sel]],
         base=np.stack([np.asarray(t.base)[rows[rows_sel]] for t in transports]),
         r_nodes=transport.r_nodes,
@@ -861,9 +858,13 @@ def _fit_args(data, media0, loss_scale, dt):
     def rows(terms, s):
         return terms if isinstance(s, slice) else terms.rows(jnp.asarray(s))
 
+    # eta is held in a fit: fold its Fresnel factors into the weights once, here
+    etas = [media0[m].eta for m in order]
     args = (
         tuple(
-            ShadingTerms.mean([rows(d["sub"][g], s) for d, s in zip(data, sel, strict=True)])
+            type(data[0]["sub"][g])
+            .mean([rows(d["sub"][g], s) for d, s in zip(data, sel, strict=True)])
+            .prepare(etas)
             for g in groups
         ),
         jnp.asarray(tgt_flat / scale, dtype=dt),
@@ -924,7 +925,7 @@ def _model(layout: _Layout, y, args):
     media = _media_of(layout.free, layout.order, y[:n_c], media0)
     model = 0.0
     for g, terms in enumerate(sub):
-        L = shade_prepared(terms, media, r_nodes) / scale + base_j[g]
+        L = terms.shade(media) / scale + base_j[g]
         model = model + (jnp.exp(y[n_c + g]) * L if g < layout.n_lights else L)
     return jnp.exp(y[-1]) * model if layout.exposure else model
 

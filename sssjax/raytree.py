@@ -1,13 +1,14 @@
 """The rays behind one pixel, recorded by the renderer's own tracing code.
 
 `raytree(scene, pixel=(x, y))` re-runs, eagerly (not under `jit`), exactly the blocks of the
-render that contain the pixel: phase 1 (`SceneTracer._chain_block`: camera rays, specular
-chains, shadow rays) for the pixel's tile, and phase 2 (`SceneTracer._sss_block`: the dipole
-gather and single scattering) for the packed block the renderer puts the pixel in, with the
-same random keys. A recorder object attached to that tracer (`SceneTracer._rec`, `None` in
-every tracer the renderer uses) is called at the few places where rays are cast and keeps the
-rows of the chosen pixel. So the tree is the set of rays of the actual render, and the
-pixel's radiance recomputed from the recorded run equals the rendered one (tested).
+render that contain the pixel, with the render's own transport functions and random keys:
+`trace_block` (camera rays, specular chains, shadow rays) for the pixel's tile, and, for the
+two-phase diffusion transport, `trace_rows` (the dipole gather and single scattering) for
+the packed block the renderer puts the pixel in. Those functions take a recorder argument
+(`sssjax.transport.Recorder`; the renderer's compiled ones run with the no-op `NO_RECORD`),
+whose hooks are called at the few places where rays are cast; this module's keeps the rows
+of the chosen pixel. So the tree is the set of rays of the actual render, and the pixel's
+radiance recomputed from the recorded run equals the rendered one (tested).
 
 What is recorded (lengths in mm):
 
@@ -38,7 +39,6 @@ of a second.
 
 from __future__ import annotations
 
-import functools
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,7 +48,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._arrays import MaterialKind
 from .scene import Scene, load_scene
+from .transport import Recorder
 
 __all__ = ["KINDS", "RayTree", "raytree", "plot_raytree", "raytree_files"]
 
@@ -170,12 +172,14 @@ class RayTree:
 
 # --- the recorder -------------------------------------------------------------------------
 @dataclass
-class _Recorder:
+class _Recorder(Recorder):
     """Collects the rays of the rows `rows` (of the block being traced) of one pixel.
 
-    Called by `SceneTracer` hooks with the (eager) arrays of the whole block; keeps NumPy
+    Called by the transport's hooks with the (eager) arrays of the whole block; keeps NumPy
     copies of the selected rows only.
     """
+
+    active: ClassVar[bool] = True
 
     spp: int
     sss_on: bool
@@ -222,11 +226,9 @@ class _Recorder:
         """The segment ending at the first translucent vertex of the samples of rows `m`."""
         return np.array([self._first.get(int(i) % self.spp, -1) for i in m], np.int64)
 
-    # -- hooks called by SceneTracer ---------------------------------------------------------
+    # -- hooks called by the transport ---------------------------------------------------------
     def chain(self, depth, o, d, x, t_light, alive, hit_light, hit, kind, first) -> None:
-        """Rays of one depth of the specular chains (`_chain_block`)."""
-        from .trace import DIFFUSE
-
+        """Rays of one depth of the specular chains (`chain_block`)."""
         o, d, x, t_light = (np.asarray(a, float) for a in (o, d, x, t_light))
         alive, hit_light, hit, first = (np.asarray(a, bool) for a in (alive, hit_light, hit, first))
         kind = np.asarray(kind)
@@ -250,13 +252,13 @@ class _Recorder:
         # shadow rays whose result the render uses: at diffuse vertices, and at the first
         # translucent vertex of a sample (its E(x_o)) when subsurface scattering is on
         first = first & self.sss_on
-        used = sel & hit & ((kind == DIFFUSE) | first)
+        used = sel & hit & ((kind == MaterialKind.DIFFUSE) | first)
         self._ctx = np.where(used, self._prev, -1)
         for i in np.flatnonzero(sel & hit & first):
             self._first[int(i) % self.spp] = int(self._prev[i])
 
     def shadow(self, o, d, t, t_max) -> None:
-        """Shadow rays (`SceneTracer.occluded`): attributed to the current context."""
+        """Shadow rays (`SceneArrays.occluded`): attributed to the current context."""
         if self._ctx is None:
             return
         o, d = np.broadcast_arrays(np.asarray(o, float), np.asarray(d, float))
@@ -358,13 +360,10 @@ class _Recorder:
 _SEG_FIELDS = ("origin", "end", "kind", "depth", "sample", "parent", "miss")
 
 
-@functools.partial(jax.jit, static_argnames="profile")
-def _shade_sss(terms, media, r_nodes, profile=None):
-    """`shade_sss` compiled (the shading of the recorded terms; no rays are cast there), with
-    the scene's diffusion profile as `Renderer` uses it."""
-    from .shade import shade_sss
-
-    return shade_sss(terms, media, r_nodes, **({} if profile is None else {"profile": profile}))
+@jax.jit
+def _shade(terms, media):
+    """The shading of recorded terms (no rays are cast there), compiled as the renderer's."""
+    return terms.shade(media)
 
 
 def scene_extent(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
@@ -400,7 +399,6 @@ def raytree(
     rounding (eager versus compiled arithmetic).
     """
     from .render import as_key, renderer_for
-    from .trace import SceneTracer
 
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
@@ -417,52 +415,48 @@ def raytree(
     r = renderer if renderer is not None else renderer_for(scene)
     key = as_key(key, scene)
     pid = y * cam.width + x
-    S = scene.render.spp
-    tr = r.tracer
+    tm, arrays = r.transport, r.arrays
+    packs = tm.two_phase and tm.media_dependent
+    state = r.image_state(key, arrays)
 
-    # Phase 1 with the compiled renderer, chunk by chunk as `Renderer.render` does, up to the
-    # pixel's chunk: this fixes the packed phase-2 block (rows, slots, key) of the pixel.
-    cloud = r.cloud(key) if tr.sss_on else None
+    # The compiled renderer's tiles, chunk by chunk as `Renderer.render` does, up to the
+    # pixel's chunk: this fixes the packed second-phase block (rows, key) of the pixel.
     counter = [0]
     found = None
-    for pix, _base, slots in r.chunks(key, None):
-        if tr.sss_on:
-            for rows, valid, blk, keys in r.sss_blocks(key, slots, counter):
-                if found is not None:
-                    continue
-                at = np.argwhere(valid & (pix[rows] == pid))
-                if len(at):
+    for pix, _base, needs, rows in r.chunks(key, None, arrays, state):
+        if packs:
+            for rr, valid, blk, _valid, keys in r.packed(key, needs, rows, counter):
+                at = np.argwhere(valid & (pix[rr] == pid))
+                if found is None and len(at):
                     i, j = (int(v) for v in at[0])
-                    found = ({f: np.asarray(v[i]) for f, v in blk.items()}, keys[i], j)
+                    one = jax.tree_util.tree_map(lambda v, i=i: jnp.asarray(v[i]), blk)
+                    found = (one, jnp.asarray(valid[i]), keys[i], j)
         if np.any(pix == pid):
             break
 
-    # the eager tracer with the recorder (a separate instance: compiled ones never see it)
     lo, hi = scene_extent(scene)
-    rt = SceneTracer(scene)
-    rec = _Recorder(spp=S, sss_on=tr.sss_on, far=float(np.linalg.norm(hi - lo)) + 1.0)
-    rt._rec = rec
+    S = scene.render.spp
+    rec = _Recorder(spp=S, sss_on=tm.media_dependent, far=float(np.linalg.norm(hi - lo)) + 1.0)
+    media = tuple(scene.media()[n] for n in arrays.materials)
 
-    # phase 1 for the pixel's tile, with the tile's key (`Renderer.chunks`)
+    # the pixel's tile, with the tile's key (`Renderer.chunks`), eagerly with the recorder
     b = pid // r.block
     start = min(b, r.n_blocks - 1) * r.block
     pix_blk = np.minimum(start + np.arange(r.block), r.n_pixels - 1).astype(np.int32)
     pos = pid - start
     k_tile = jax.random.fold_in(jax.random.fold_in(key, 1), b)
     rec.begin(np.arange(r.block * S) // S == pos)
-    base, _ = rt._chain_block(jnp.asarray(pix_blk), k_tile)
+    base, needs, rows = tm.trace_block(arrays, state, jnp.asarray(pix_blk), k_tile, rec)
     L = np.asarray(base)[pos].astype(float)
+    if tm.media_dependent and not tm.two_phase and bool(needs[pos]):
+        L = L + np.asarray(_shade(rows.rows(jnp.asarray([pos])), media))[0]
 
-    # phase 2 for the pixel's packed block, with its key (`Renderer.sss_blocks`)
+    # a two-phase transport: the pixel's packed block, with its key (`Renderer.packed`)
     if found is not None:
-        blk, k_blk, j = found
+        blk, valid, k_blk, j = found
         rec.begin(np.arange(r.block * S) // S == j)
-        terms = rt._sss_block({f: jnp.asarray(v) for f, v in blk.items()}, k_blk, cloud)
-        media = tuple(scene.media()[n] for n in tr.tmat_names)
-        profile = getattr(scene.sss, "profile", None)
-        Ls = _shade_sss(terms, media, jnp.asarray(tr.r_nodes, dtype=float), profile=profile)
-        L = L + np.asarray(Ls)[j]
-    rt._rec = None
+        terms = tm.trace_rows(arrays, state, blk, valid, k_blk, rec)
+        L = L + np.asarray(_shade(terms, media))[j]
     return rec.tree((x, y), L)
 
 

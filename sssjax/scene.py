@@ -23,6 +23,7 @@ import numpy as np
 from ._registry import did_you_mean
 from .media import Medium, preset, preset_names
 from .profiles import check_profile
+from .transport import STRATEGIES, TRANSPORTS
 
 __all__ = [
     "SceneError",
@@ -226,6 +227,7 @@ class SSSSettings(_Value):
     bins: int = 256
     beam_points: int = 2048
     profile: str = "dipole"
+    transport: str = "diffusion"  # `sssjax.transport.TRANSPORTS`
 
 
 @dataclass(frozen=True, eq=False)
@@ -272,6 +274,8 @@ class Scene(_Value):
             raise TypeError(f"unknown settings: {sorted(unknown)}")
         if "profile" in s:
             check_profile(s["profile"])
+        if "transport" in s:
+            TRANSPORTS.check(s["transport"])
         return dataclasses.replace(
             self,
             render=dataclasses.replace(self.render, **r),
@@ -425,7 +429,6 @@ _RENDER = {
     "background": (_rgb, lambda: np.zeros(3)),
     "tile": (_pos_int, 32),
 }
-_STRATEGIES = ("cloud", "uniform", "within", "annulus")
 _SSS = {
     "enabled": (_bool, True),
     "single_scattering": (_bool, True),
@@ -440,6 +443,7 @@ _SSS = {
     "bins": (_pos_int, 256),
     "beam_points": (_pos_int, 2048),
     "profile": (_str, "dipole"),
+    "transport": (_str, "diffusion"),
 }
 _LIGHTS = {
     "area": {
@@ -630,19 +634,14 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
         check_profile(sss.profile)
     except ValueError as e:
         raise sctx.err("profile", str(e)) from None
-    if sss.strategy not in _STRATEGIES:
-        hint = did_you_mean(sss.strategy, _STRATEGIES)
-        raise sctx.err(
-            "strategy", f"unknown strategy {sss.strategy!r}{hint} (known: {', '.join(_STRATEGIES)})"
-        )
-    if sss.strategy == "within" and sss.radius <= 0:
-        raise sctx.err("radius", "strategy 'within' needs radius > 0 (mm)")
-    if sss.strategy == "annulus" and not 0 <= sss.inner < sss.outer:
-        raise sctx.err(
-            "outer",
-            f"strategy 'annulus' needs 0 <= inner < outer, got "
-            f"inner={sss.inner:g}, outer={sss.outer:g}",
-        )
+    for name, registry in (("strategy", STRATEGIES), ("transport", TRANSPORTS)):
+        try:
+            registry.check(getattr(sss, name))
+        except ValueError as e:
+            raise sctx.err(name, str(e)) from None
+    problem = STRATEGIES[sss.strategy].check(sss)
+    if problem is not None:
+        raise sctx.err(*problem)
 
     raw_lights = data.get("lights", [])
     if not isinstance(raw_lights, list):
