@@ -166,6 +166,17 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     return 0 if res.converged else 1
 
 
+def _cmd_params(args: argparse.Namespace) -> int:
+    from .params import parameters
+    from .scene import load_scene
+
+    print(f"{'parameter':<28} {'enters':<10} value (mm, 1/mm; lights and exposure: factors)")
+    for p in parameters(load_scene(args.scene)).values():
+        v = np.atleast_1d(np.asarray(p.value, dtype=np.float64))
+        print(f"{p.name:<28} {p.enters.value:<10} {' '.join(f'{x:.6g}' for x in v)}")
+    return 0
+
+
 def _cmd_measure(args: argparse.Namespace) -> int:
     import json
 
@@ -372,6 +383,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--output", help="output folder (default: the fit file's 'output')")
     s.add_argument("--force", action="store_true", help="overwrite an existing result")
     s.set_defaults(func=_cmd_fit)
+
+    s = sub.add_parser("params", help="the parameters a fit can free, with values and roles")
+    s.add_argument("scene", help="scene TOML file")
+    s.set_defaults(func=_cmd_params)
 
     s = sub.add_parser("raytree", help="the rays behind one pixel: JSON and a picture")
     s.add_argument("scene", help="scene TOML file")
