@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import central_differences, slab_scene
 
 import sssjax
 from sssjax import Medium, dipole, preset, profiles
@@ -19,50 +20,6 @@ from sssjax.shade import shade_sss
 from sssjax.transport.gather import R0_MM, disc_node_weights, gather_cloud
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def slab_scene(
-    material: dict,
-    *,
-    width=8,
-    spp=4,
-    cloud=16384,
-    single=False,
-    size=60.0,
-    thick=20.0,
-    light_height=1000.0,
-    intensity=1e6,
-    seed=0,
-):
-    return sssjax.load_scene(
-        {
-            "camera": {
-                "origin": [0.0, 150.0, 60.0],
-                "target": [0.0, 0.0, 0.0],
-                "fov": 1.0,
-                "width": width,
-                "height": width,
-            },
-            "render": {"spp": spp, "light_samples": 1, "max_depth": 1, "seed": seed},
-            "sss": {"cloud_size": cloud, "single_scattering": single},
-            "lights": [
-                {
-                    "type": "point",
-                    "position": [0.0, light_height, 0.0],
-                    "intensity": [intensity] * 3,
-                }
-            ],
-            "materials": {"m": material},
-            "shapes": [
-                {
-                    "type": "cube",
-                    "material": "m",
-                    "size": [size, thick, size],
-                    "translate": [0.0, -thick / 2, 0.0],
-                }
-            ],
-        }
-    )
 
 
 def test_near_field_weights_integrate_the_profile_exactly(x64):
@@ -211,11 +168,7 @@ def test_render_gradients_match_central_differences(x64):
     g = jax.grad(loss)(p0)
     J = jax.jacfwd(loss)(p0)
     assert np.all(np.isfinite(g))
-    fd = []
-    for i in range(6):
-        h = 1e-6 * float(p0[i])
-        e = jnp.zeros(6).at[i].set(h)
-        fd.append((loss(p0 + e) - loss(p0 - e)) / (2 * h))
+    fd = central_differences(lambda p: loss(jnp.asarray(p)), p0)
     np.testing.assert_allclose(g, fd, rtol=1e-5)
     np.testing.assert_allclose(J, fd, rtol=1e-5)
 
