@@ -5,15 +5,20 @@ Units: lengths in millimetres, scattering coefficients per millimetre, colour li
 Public API:
 
 - `Medium`, `preset`, `preset_names`: scattering media and Jensen et al. 2001's measurements.
-- `dipole`: the BSSRDF physics (Fresnel terms, `Rd`, `Rd_total`, `Sd`, single scattering).
-- `load_scene`: a scene from a TOML file or a dict.
-- `trace`, `shade`, `render`: the geometric pass, the differentiable pass, and both.
+- `scattering`: Fresnel terms and moments, refraction, the HG phase function.
+- `dipole`, `profiles`: the dipole BSSRDF (`Rd`, `Rd_total`, `Sd`, single scattering) and the
+  diffusion profiles by name.
+- `load_scene`, `dump_scene` (`Scene.to_toml`): scene files read and written; `SceneArrays`: a
+  scene as arrays, the argument of the transports.
+- `trace`, `shade`, `render`: the geometric pass (a `Transport`), the differentiable pass,
+  and both; `transport` / `TRANSPORTS`: the transports and their interface.
+- `params`: the parameter map (names, values, how each enters the image).
+- `fit`: recover `sigma_a`, `sigma_s` (...) from a target image (trace once, shade per step).
 - `imageio`: `read_image` / `write_image` through OpenImageIO.
 - `raytree`: every ray the renderer casts for one pixel (`RayTree`).
-- `fit`: recover `sigma_a`, `sigma_s` from a target image (trace once, shade per step).
 """
 
-from . import dipole, imageio, profiles, scattering, transport
+from . import dipole, imageio, params, profiles, scattering, transport
 from ._arrays import MaterialKind, SceneArrays
 from ._version import __version__
 from .fit import FitResult, fit
@@ -32,6 +37,7 @@ __all__ = [
     "preset_names",
     "dipole",
     "profiles",
+    "params",
     "scattering",
     "transport",
     "imageio",

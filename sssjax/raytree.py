@@ -477,22 +477,18 @@ def _style(kcode: int) -> dict:
     return dict(linewidths=1.1 if kcode in (SS_REFRACTED, SS_LIGHT) else 0.9, alpha=0.9, zorder=2)
 
 
-def plot_raytree(
-    tree: RayTree,
-    scene: Scene,
-    path: str | Path,
-    *,
-    image: np.ndarray | None = None,
-    note: str = "",
-    dpi: int = 110,
-) -> Path:
-    """Draw `tree` over `image` (linear RGB seen by the scene camera, any resolution) and in a
-    side view (orthographic, looking along the camera's right axis), coloured by kind.
+def _heavy_points(tree: RayTree):
+    """The dipole points drawn (area ~ weight; those under 1% of the heaviest are left out)
+    and their marker sizes."""
+    wmax = float(tree.point_weight.max()) if tree.point_weight.size else 0.0
+    heavy = tree.point_weight >= POINT_MIN_WEIGHT * wmax if wmax > 0 else tree.point_weight > 0
+    sizes = 0.3 + 12.0 * tree.point_weight[heavy] / (wmax if wmax > 0 else 1.0)
+    return tree.points[heavy], sizes
 
-    **Returns:** the path of the PNG written.
-    """
+
+def _camera_view(ax0, tree: RayTree, scene: Scene, image, note: str, pts, sizes) -> None:
+    """The segments and points over the image, seen by the scene camera."""
     from matplotlib.collections import LineCollection
-    from matplotlib.lines import Line2D
 
     from .camera import project
     from .imageio import srgb_encode, tonemap
@@ -501,27 +497,10 @@ def plot_raytree(
     plt = _pyplot()
     cam = scene.camera
     W, H = cam.width, cam.height
-    fwd, right, up = (np.asarray(v, float) for v in cam.basis())
+    fwd = np.asarray(cam.basis()[0], float)
     org = np.asarray(cam.origin, float)
     lo, hi = scene_extent(scene)
     scale = float(np.linalg.norm(hi - lo))
-    counts = tree.counts()
-
-    close_up = bool(np.any(tree.of_kind("ss_refracted", "ss_light", "dipole")))
-    if close_up:
-        fig, (ax0, ax1, ax2) = plt.subplots(
-            1, 3, figsize=(19, 6.6), facecolor="#111111", width_ratios=(1.35, 1, 1)
-        )
-    else:
-        fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(14, 6.6), facecolor="#111111")
-        ax2 = None
-    for ax in (ax0, ax1, ax2) if close_up else (ax0, ax1):
-        ax.set_facecolor("#1b1b1b")
-        ax.tick_params(colors="#bbbbbb", labelsize=8)
-        for s in ax.spines.values():
-            s.set_color("#555555")
-
-    # -- camera view --------------------------------------------------------------------
     if image is not None:
         ax0.imshow(srgb_encode(tonemap(np.asarray(image))), extent=(0, W, H, 0))
     z_o = (tree.origin - org) @ fwd
@@ -538,11 +517,6 @@ def plot_raytree(
         if s.any():
             segs = np.stack([pa[s], pb[s]], axis=1)
             ax0.add_collection(LineCollection(segs, colors=COLORS[KINDS[kcode]], **_style(kcode)))
-    # dipole points: area ~ weight; those under 1% of the heaviest are left out
-    wmax = float(tree.point_weight.max()) if tree.point_weight.size else 0.0
-    heavy = tree.point_weight >= POINT_MIN_WEIGHT * wmax if wmax > 0 else tree.point_weight > 0
-    pts = tree.points[heavy]
-    sizes = 0.3 + 12.0 * tree.point_weight[heavy] / (wmax if wmax > 0 else 1.0)
     if len(pts):
         zp = (pts - org) @ fwd
         ok = zp > 0 if cam.projection != "orthographic" else np.ones(len(zp), bool)
@@ -554,6 +528,80 @@ def plot_raytree(
     ax0.set_ylim(H, 0)
     ax0.set_aspect("equal")
     ax0.set_title(f"camera view{(' — ' + note) if note else ''}", color="#dddddd", fontsize=10)
+
+
+def _legend_handles(tree: RayTree, counts: dict, pts) -> list:
+    """One legend entry per kind present, and the dipole points."""
+    from matplotlib.lines import Line2D
+
+    handles = [
+        Line2D(
+            [],
+            [],
+            color=COLORS[k],
+            lw=2,
+            ls="--" if k == "shadow_blocked" else "-",
+            label=f"{k.replace('_', ' ')} ({counts[k]})",
+        )
+        for k in KINDS
+        if counts[k]
+    ]
+    if tree.points.size:
+        handles.append(
+            Line2D(
+                [],
+                [],
+                ls="",
+                marker="o",
+                color=POINT_COLOR,
+                label=f"dipole samples ({len(tree.points)}; {len(pts)} drawn: weight >= 1% "
+                "of the heaviest, area ~ weight)",
+            )
+        )
+    return handles
+
+
+def plot_raytree(
+    tree: RayTree,
+    scene: Scene,
+    path: str | Path,
+    *,
+    image: np.ndarray | None = None,
+    note: str = "",
+    dpi: int = 110,
+) -> Path:
+    """Draw `tree` over `image` (linear RGB seen by the scene camera, any resolution) and in a
+    side view (orthographic, looking along the camera's right axis), coloured by kind.
+
+    **Returns:** the path of the PNG written.
+    """
+    from matplotlib.collections import LineCollection
+
+    from .plots import _pyplot
+
+    plt = _pyplot()
+    cam = scene.camera
+    fwd, right, up = (np.asarray(v, float) for v in cam.basis())
+    org = np.asarray(cam.origin, float)
+    counts = tree.counts()
+
+    close_up = bool(np.any(tree.of_kind("ss_refracted", "ss_light", "dipole")))
+    if close_up:
+        fig, (ax0, ax1, ax2) = plt.subplots(
+            1, 3, figsize=(19, 6.6), facecolor="#111111", width_ratios=(1.35, 1, 1)
+        )
+    else:
+        fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(14, 6.6), facecolor="#111111")
+        ax2 = None
+    for ax in (ax0, ax1, ax2) if close_up else (ax0, ax1):
+        ax.set_facecolor("#1b1b1b")
+        ax.tick_params(colors="#bbbbbb", labelsize=8)
+        for s in ax.spines.values():
+            s.set_color("#555555")
+
+    pts, sizes = _heavy_points(tree)
+    _camera_view(ax0, tree, scene, image, note, pts, sizes)
+    order = [CAMERA, DIPOLE, SS_REFRACTED, SS_LIGHT, SHADOW_BLOCKED, SHADOW, REFLECTED]
 
     # -- side views: orthographic along the camera's right axis ---------------------------
     def side(p):
@@ -609,30 +657,7 @@ def plot_raytree(
         half = max(1.2 * float(np.max(np.abs(ends - c))), 0.5)
         draw_side(ax2, c - half, c + half, "close-up of the subsurface paths (side view)")
 
-    handles = [
-        Line2D(
-            [],
-            [],
-            color=COLORS[k],
-            lw=2,
-            ls="--" if k == "shadow_blocked" else "-",
-            label=f"{k.replace('_', ' ')} ({counts[k]})",
-        )
-        for k in KINDS
-        if counts[k]
-    ]
-    if tree.points.size:
-        handles.append(
-            Line2D(
-                [],
-                [],
-                ls="",
-                marker="o",
-                color=POINT_COLOR,
-                label=f"dipole samples ({len(tree.points)}; {len(pts)} drawn: weight >= 1% "
-                "of the heaviest, area ~ weight)",
-            )
-        )
+    handles = _legend_handles(tree, counts, pts)
     fig.legend(
         handles=handles,
         loc="lower center",
@@ -643,6 +668,7 @@ def plot_raytree(
         labelcolor="#eeeeee",
     )
     rad = ", ".join(f"{v:.4g}" for v in tree.radiance)
+    x, y = tree.pixel
     fig.suptitle(
         f"rays behind pixel ({x}, {y}), {tree.spp} spp: {len(tree)} segments; radiance ({rad})",
         color="#eeeeee",

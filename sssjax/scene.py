@@ -580,6 +580,27 @@ def _parse_mesh(ctx: _Ctx, f: dict, base: Path | None):
     return verts, faces
 
 
+def _parse_camera(file: str, raw: Any) -> Camera:
+    """The validated `[camera]` table."""
+    cam = _fields(_Ctx(file, "camera"), raw, _CAMERA)
+    cctx = _Ctx(file, "camera")
+    if np.linalg.norm(cam["target"] - cam["origin"]) == 0:
+        raise cctx.err("target", "must differ from 'origin'")
+    if np.linalg.norm(np.cross(cam["target"] - cam["origin"], cam["up"])) < 1e-9:
+        raise cctx.err("up", "must not be parallel to the viewing direction")
+    if not 0 < cam["fov"] < 180:
+        raise cctx.err("fov", f"must be between 0 and 180 degrees, got {cam['fov']:g}")
+    if cam["projection"] not in _PROJECTIONS:
+        hint = did_you_mean(cam["projection"], _PROJECTIONS)
+        raise cctx.err(
+            "projection",
+            f"unknown projection {cam['projection']!r}{hint} (known: {', '.join(_PROJECTIONS)})",
+        )
+    if cam["projection"] == "orthographic" and cam["view_width"] <= 0:
+        raise cctx.err("view_width", "an orthographic camera needs view_width > 0 (mm)")
+    return Camera(**cam)
+
+
 def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = None) -> Scene:
     """Load and validate a scene.
 
@@ -609,23 +630,7 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
     if "camera" not in data:
         raise SceneError(f"{file}: missing required table [camera]")
 
-    cam = _fields(_Ctx(file, "camera"), data["camera"], _CAMERA)
-    cctx = _Ctx(file, "camera")
-    if np.linalg.norm(cam["target"] - cam["origin"]) == 0:
-        raise cctx.err("target", "must differ from 'origin'")
-    if np.linalg.norm(np.cross(cam["target"] - cam["origin"], cam["up"])) < 1e-9:
-        raise cctx.err("up", "must not be parallel to the viewing direction")
-    if not 0 < cam["fov"] < 180:
-        raise cctx.err("fov", f"must be between 0 and 180 degrees, got {cam['fov']:g}")
-    if cam["projection"] not in _PROJECTIONS:
-        hint = did_you_mean(cam["projection"], _PROJECTIONS)
-        raise cctx.err(
-            "projection",
-            f"unknown projection {cam['projection']!r}{hint} (known: {', '.join(_PROJECTIONS)})",
-        )
-    if cam["projection"] == "orthographic" and cam["view_width"] <= 0:
-        raise cctx.err("view_width", "an orthographic camera needs view_width > 0 (mm)")
-    camera = Camera(**cam)
+    camera = _parse_camera(file, data["camera"])
 
     render = RenderSettings(**_fields(_Ctx(file, "render"), data.get("render", {}), _RENDER))
     sctx = _Ctx(file, "sss")

@@ -241,6 +241,10 @@ def save_paths(base: str | Path, protect=()) -> dict[str, Path]:
 
 
 # --- the server -------------------------------------------------------------------------
+# `Previewer` is over 400 lines on purpose: it is one GUI object whose public methods are its
+# buttons (`use_view`, `render`, `save`, `show_raytree`, `set_opacity`, each tested without a
+# browser) over one shared state of scene nodes and controls; split, that state would be
+# passed between classes that are only ever used together.
 class Previewer:
     """The interactive previewer of one scene.
 
