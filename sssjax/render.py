@@ -268,6 +268,7 @@ class Renderer:
                             parts.append(one.rows(np.flatnonzero(valid[i])))
             offset += len(pix)
         terms = type(parts[0]).concat(parts) if parts else tm.empty_terms()
+        terms = jax.tree_util.tree_map(jnp.asarray, terms)
         t_rows = np.concatenate(rows_all) if rows_all else np.zeros(0, np.int64)
         return Transport(
             pixels=jnp.asarray(np.concatenate(pix_all)),

@@ -9,6 +9,7 @@ import ast
 from pathlib import Path
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -190,6 +191,14 @@ def test_scene_arrays_replace_eta_and_gain_as_new_pytrees():
     assert eqx.tree_equal(arrays.with_eta(None).with_gain(None), arrays)
     with pytest.raises(ValueError, match="no translucent material named"):
         arrays.with_eta({"wood": 1.5})
+    # the media the trace samples with (the single-scattering proposal's extinction)
+    dense = sssjax.Medium([0.1, 0.2, 0.3], [3.0, 4.0, 5.0])
+    other = arrays.with_media({"marble": dense})
+    assert float(other.object_sigma_t()[0]) == pytest.approx(4.2, rel=1e-6)
+    assert float(arrays.object_sigma_t()[0]) == pytest.approx(
+        float(np.mean(np.asarray(arrays.media[0].sigma_t))), rel=1e-6
+    )
+    assert jax.tree_util.tree_structure(other) == jax.tree_util.tree_structure(arrays)
 
 
 # --- no import cycle ---------------------------------------------------------------------------

@@ -24,6 +24,7 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .. import profiles
@@ -70,7 +71,9 @@ class DiffusionTerms(Terms):
 
     @classmethod
     def concat(cls, parts: Sequence[DiffusionTerms]) -> DiffusionTerms:
-        return _combine(parts, lambda h: jnp.concatenate(h, axis=2), axis=0, weight=1.0)
+        host = all(isinstance(p.ms_hist, np.ndarray) for p in parts)
+        cat = np.concatenate if host else jnp.concatenate
+        return _combine(parts, lambda h: cat(h, axis=2), axis=0, weight=1.0)
 
     @classmethod
     def mean(cls, parts: Sequence[DiffusionTerms]) -> DiffusionTerms:
@@ -99,8 +102,10 @@ class DiffusionTerms(Terms):
 
 def _combine(parts, hist, axis: int, weight: float) -> DiffusionTerms:
     """Terms of `parts` with histograms combined by `hist` and the records concatenated
-    along `axis` (0: rows, 1: records), their weights times `weight`."""
-    cat = jnp.concatenate
+    along `axis` (0: rows, 1: records), their weights times `weight` (NumPy for parts on the
+    host, as the renderer assembles them: no compiled concatenation per trace)."""
+    host = all(isinstance(p.ms_hist, np.ndarray) for p in parts)
+    cat = np.concatenate if host else jnp.concatenate
     p0 = parts[0]
     return DiffusionTerms(
         hist([p.ms_hist for p in parts]),
