@@ -29,7 +29,7 @@ def bench(scene_path: str, size: int, spp: int) -> None:
     scene = scene.with_settings(width=size, height=h, spp=spp)
     r = Renderer(scene)
     key = as_key(0, scene)
-    media = tuple(scene.media()[n] for n in r.tracer.tmat_names)
+    media = tuple(scene.media()[n] for n in r.arrays.materials)
 
     t0 = time.perf_counter()
     r.render(key, media, progress=False)
@@ -50,7 +50,7 @@ def bench(scene_path: str, size: int, spp: int) -> None:
     n_cam = size * h * spp
     n_t = int(tr.t_rows.shape[0])
     print(
-        f"{scene_path} {size}x{h} @ {spp} spp, cloud {r.tracer.cloud_n}, on "
+        f"{scene_path} {size}x{h} @ {spp} spp, cloud {r.transport.cloud_n}, on "
         f"{jax.device_count()} {jax.devices()[0].platform} device(s)"
     )
     print(f"  compile (first render - second): {t_first - t_render:7.2f} s")

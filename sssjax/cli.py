@@ -40,7 +40,9 @@ def materials_table(profile: str = "dipole") -> str:
             f"{trip(m.diffuse_mean_free_path, '{:6.2f}'):<22}"
         )
     names = {"dipole": "the classic dipole", "better_dipole": "the better dipole", "pbd": "PBD"}
-    lines.append(f"(Jensen et al. 2001; g = 0, eta = 1.3; total R_d of {names[profile]})")
+    lines.append(
+        f"(Jensen et al. 2001; g = 0, eta = 1.3; total R_d of {names.get(profile, profile)})"
+    )
     return "\n".join(lines)
 
 
@@ -62,44 +64,14 @@ def render_to_files(
     import time
 
     from ._files import scene_inputs
-    from ._version import __version__
-    from .imageio import write_image
+    from .imageio import render_metadata, write_image
     from .render import render
 
     t0 = time.perf_counter()
     seed = scene.render.seed if seed is None else seed
     image = render(scene, seed, progress=not quiet)
     dt = time.perf_counter() - t0
-    meta = {
-        "scene": scene.path or "<dict>",
-        "spp": scene.render.spp,
-        "seed": seed,
-        "sss": scene.sss.enabled,
-        "version": __version__,
-        "units": "radiance; lengths mm, coefficients 1/mm",
-        "media": {
-            n: {
-                "sigma_a": np.asarray(m.sigma_a).tolist(),
-                "sigma_s": np.asarray(m.sigma_s).tolist(),
-                "g": float(np.asarray(m.g).mean()),
-                "eta": float(m.eta),
-            }
-            for n, m in scene.media().items()
-        },
-    }
-    if scene.camera.projection == "orthographic":
-        meta["pixel_size_mm"] = scene.camera.pixel_size_mm
-    beams = [b for b in scene.lights if type(b).__name__ == "BeamLight"]
-    if beams:
-        meta["beams"] = [
-            {
-                "position": np.asarray(b.position).tolist(),
-                "direction": np.asarray(b.direction).tolist(),
-                "radius": float(b.radius),
-                "power": np.asarray(b.power).tolist(),
-            }
-            for b in beams
-        ]
+    meta = render_metadata(scene, seed=seed)
     protect = scene_inputs(scene)
     written = []
     for out in outputs:
@@ -239,6 +211,17 @@ def _check_measure_flags(args: argparse.Namespace) -> None:
     for flag, v in (("--incidence", args.incidence), ("--view-angle", args.view_angle)):
         if not -90 < v < 90:
             raise UserError(f"{flag} must be between -90 and 90 degrees (exclusive), got {v:g}")
+
+
+def _cmd_params(args: argparse.Namespace) -> int:
+    from .params import parameters
+    from .scene import load_scene
+
+    print(f"{'parameter':<28} {'enters':<10} value (mm, 1/mm; lights and exposure: factors)")
+    for p in parameters(load_scene(args.scene)).values():
+        v = np.atleast_1d(np.asarray(p.value, dtype=np.float64))
+        print(f"{p.name:<28} {p.enters.value:<10} {' '.join(f'{x:.6g}' for x in v)}")
+    return 0
 
 
 def _cmd_measure(args: argparse.Namespace) -> int:
@@ -415,6 +398,7 @@ _NO_CACHE_HELP = (
 
 def build_parser() -> argparse.ArgumentParser:
     from ._version import __version__
+    from .profiles import PROFILES
 
     p = argparse.ArgumentParser(
         prog="sssjax",
@@ -438,7 +422,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--profile",
         default="dipole",
-        choices=["dipole", "better_dipole", "pbd"],
+        choices=PROFILES,
         help="diffusion profile for the total reflectance column",
     )
     s.set_defaults(func=_cmd_materials)
@@ -484,6 +468,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--output", help="output folder (default: the fit file's 'output')")
     s.set_defaults(func=_cmd_fit)
 
+    s = sub.add_parser("params", help="the parameters a fit can free, with values and roles")
+    s.add_argument("scene", help="scene TOML file")
+    s.set_defaults(func=_cmd_params)
+
     s = sub.add_parser(
         "raytree",
         parents=[compiling, writing],
@@ -518,7 +506,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--model",
         default="dipole",
-        choices=["dipole", "better_dipole", "pbd"],
+        choices=PROFILES,
         help="diffusion profile to fit (default: the classic dipole; see docs/accuracy.md)",
     )
     s.add_argument("--incidence", type=float, default=0.0, help="beam angle from normal, deg")

@@ -8,6 +8,9 @@ Naming follows the paper and pbrt: `sigma_a`, `sigmap_s` (reduced scattering), `
 `alpha_p` (reduced albedo), `sigma_tr` (effective transport coefficient), `z_r`, `z_v` (depths
 of the real and virtual sources), `d_r`, `d_v` (distances to them), `F_dr`, `A`.
 
+The boundary's Fresnel terms and the Henyey-Greenstein phase function live in
+`sssjax.scattering` (re-exported here: `dipole.fresnel_reflectance`, ...).
+
 All square roots and divisions that can reach zero use the double-`where` idiom, so values
 and gradients stay finite at `r = 0`, `sigma_a = 0` and grazing angles.
 """
@@ -18,6 +21,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from ._numerics import safe_div, safe_sqrt
+from .scattering import fresnel_reflectance, fresnel_transmittance, hg_phase
 
 __all__ = [
     "F_dr",
@@ -58,33 +62,6 @@ def A_boundary(eta: ArrayLike) -> Array:
     """The boundary-condition constant `A = (1 + F_dr) / (1 - F_dr)`."""
     f = F_dr(eta)
     return (1.0 + f) / (1.0 - f)
-
-
-def fresnel_reflectance(cos_i: ArrayLike, eta: ArrayLike) -> Array:
-    """Exact unpolarised Fresnel reflectance of a smooth dielectric boundary.
-
-    **Arguments:**
-
-    - `cos_i`: cosine of the angle of incidence, measured on the side the light comes from
-      (its sign is ignored).
-    - `eta`: index on the far side divided by index on the incident side (`n_t / n_i`); light
-      entering a medium of index 1.3 from air has `eta = 1.3`, light leaving it `1/1.3`.
-
-    **Returns:** reflectance in [0, 1]; exactly 1 under total internal reflection.
-    """
-    cos_i = jnp.clip(jnp.abs(jnp.asarray(cos_i)), 0.0, 1.0)
-    eta = jnp.asarray(eta)
-    sin2_t = safe_div(1.0 - cos_i**2, eta**2)
-    tir = sin2_t >= 1.0
-    cos_t = safe_sqrt(1.0 - sin2_t)
-    rs = safe_div(cos_i - eta * cos_t, cos_i + eta * cos_t, 1.0)
-    rp = safe_div(eta * cos_i - cos_t, eta * cos_i + cos_t, 1.0)
-    return jnp.where(tir, 1.0, 0.5 * (rs**2 + rp**2))
-
-
-def fresnel_transmittance(cos_i: ArrayLike, eta: ArrayLike) -> Array:
-    """`1 - fresnel_reflectance(cos_i, eta)`: the transmitted fraction of energy."""
-    return 1.0 - fresnel_reflectance(cos_i, eta)
 
 
 # --- multiple scattering: the classic dipole -------------------------------------------
@@ -161,19 +138,6 @@ def Sd(
 
 
 # --- single scattering -----------------------------------------------------------------
-def hg_phase(cos_theta: ArrayLike, g: ArrayLike) -> Array:
-    """Henyey-Greenstein phase function `(1 - g^2) / (4 pi (1 + g^2 - 2 g cos)^{3/2})`.
-
-    **Arguments:** `cos_theta`, cosine between the propagation directions before and after
-    scattering (forward scattering is `cos_theta = 1`); `g` with `|g| < 1`.
-
-    **Returns:** the phase function in sr^-1 (integrates to 1 over the sphere).
-    """
-    g = jnp.asarray(g)
-    denom = 1.0 + g**2 - 2.0 * g * jnp.asarray(cos_theta)
-    return (1.0 - g**2) / (4.0 * jnp.pi * denom * safe_sqrt(denom))
-
-
 def refracted_distance(s_i: ArrayLike, cos_i: ArrayLike, eta: ArrayLike) -> Array:
     """Jensen's refracted-distance approximation for the light's path inside the medium.
 

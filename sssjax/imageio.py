@@ -34,6 +34,7 @@ __all__ = [
     "write_image",
     "read_image",
     "read_metadata",
+    "render_metadata",
     "srgb_encode",
     "srgb_decode",
     "tonemap",
@@ -345,3 +346,55 @@ def read_metadata(path: str | os.PathLike) -> dict[str, Any]:
                 pass
         result[p.name[len(METADATA_PREFIX) :]] = value
     return result
+
+
+def render_metadata(scene, **extra: Any) -> dict[str, Any]:
+    """The metadata sssjax stores with a rendered image of `scene` (a `Scene`): where it came
+    from, its samples and SSS switch, the camera (and an orthographic camera's pixel size,
+    mm), the translucent media (coefficients in 1/mm), the beam lights, the version and the
+    units; `extra` (the `seed`, or a viewer's `seeds` and total `spp`) is added last.
+
+    `sssjax measure` reads `pixel_size_mm`, `media` (`eta`) and `beams` back from it.
+    """
+    from ._version import __version__
+
+    cam = scene.camera
+    meta: dict[str, Any] = {
+        "scene": scene.path or "<dict>",
+        "spp": scene.render.spp,
+        "light_samples": scene.render.light_samples,
+        "sss": scene.sss.enabled,
+        "version": __version__,
+        "units": "radiance; lengths mm, coefficients 1/mm",
+        "camera": {
+            "origin": [float(x) for x in cam.origin],
+            "target": [float(x) for x in cam.target],
+            "up": [float(x) for x in cam.up],
+            "fov": float(cam.fov),
+            "projection": cam.projection,
+        },
+        "media": {
+            n: {
+                "sigma_a": np.asarray(m.sigma_a).tolist(),
+                "sigma_s": np.asarray(m.sigma_s).tolist(),
+                "g": float(np.asarray(m.g).mean()),
+                "eta": float(m.eta),
+            }
+            for n, m in scene.media().items()
+        },
+    }
+    if cam.projection == "orthographic":
+        meta["pixel_size_mm"] = cam.pixel_size_mm
+    beams = [b for b in scene.lights if b.kind == "beam"]
+    if beams:
+        meta["beams"] = [
+            {
+                "position": np.asarray(b.position).tolist(),
+                "direction": np.asarray(b.direction).tolist(),
+                "radius": float(b.radius),
+                "power": np.asarray(b.power).tolist(),
+            }
+            for b in beams
+        ]
+    meta.update(extra)
+    return meta

@@ -42,8 +42,6 @@ distance (about 100 times the arithmetic).
 
 from __future__ import annotations
 
-import difflib
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -51,6 +49,8 @@ from jaxtyping import Array, ArrayLike
 
 from . import dipole
 from ._numerics import safe_div, safe_sqrt
+from ._registry import Registry
+from .scattering import fresnel_moment, fresnel_moments
 
 __all__ = [
     "PROFILES",
@@ -68,9 +68,6 @@ __all__ = [
 
 PROFILES = ("dipole", "better_dipole", "pbd")
 
-# Gauss-Legendre on [0, 1] for the Fresnel moments (smooth integrand after the substitution)
-_GL_X, _GL_W = np.polynomial.legendre.leggauss(48)
-_GL_X, _GL_W = 0.5 * (_GL_X + 1.0), 0.5 * _GL_W
 # Gauss-Laguerre for the one non-elementary part of the PBD total
 _LAG_X, _LAG_W = np.polynomial.laguerre.laggauss(32)
 PBD_DEPTHS = 100
@@ -79,45 +76,11 @@ _PBD_Q = -np.log1p(-(np.arange(PBD_DEPTHS) + 0.5) / PBD_DEPTHS)  # z_i sigmap_t
 
 def check_profile(profile: str) -> str:
     """`profile` if it is one of `PROFILES`, else a `ValueError` with a did-you-mean hint."""
-    if profile not in PROFILES:
-        close = difflib.get_close_matches(str(profile), PROFILES, n=1)
-        hint = f"; did you mean '{close[0]}'?" if close else ""
-        raise ValueError(f"unknown profile {profile!r}{hint} (known: {', '.join(PROFILES)})")
-    return profile
+    return Registry("profile", dict.fromkeys(PROFILES)).check(profile)
 
 
 def _dtype(*xs):
     return jnp.result_type(*[jnp.asarray(x) for x in xs], float)
-
-
-# --- boundary: moments of the Fresnel reflectance -----------------------------------------
-def fresnel_moment(eta: ArrayLike, k: int) -> Array:
-    """`C_k(eta) = int_0^1 F_r(mu) mu^k dmu`: moment of the exact Fresnel reflectance of light
-    inside a medium of relative index `eta` (inside / outside) meeting its boundary at
-    `cos = mu` (pbrt's `FresnelMoment1/2` are polynomial fits of `C_1`, `C_2`).
-
-    Below the critical cosine `mu_c = sqrt(1 - 1/eta^2)` (`eta > 1`) the reflectance is 1 and
-    that part is exact; above it the substitution `mu = mu_c + (1 - mu_c) t^2` removes the
-    square-root kink at the critical angle, and a 48-point Gauss-Legendre rule is exact to
-    float precision. `2 C_1` is the diffuse Fresnel reflectance `F_dr`.
-
-    **Arguments:** `eta` (> 0, any shape); `k` the moment order (0, 1, 2, ...).
-
-    **Returns:** `C_k`, dimensionless, shape of `eta`.
-    """
-    return _fresnel_moments(eta, (k,))[0]
-
-
-def _fresnel_moments(eta, ks):
-    """`fresnel_moment(eta, k)` for each `k` in `ks`, sharing one Fresnel evaluation."""
-    eta = jnp.asarray(eta)
-    dt = _dtype(eta)
-    eta = eta.astype(dt)
-    x, w = jnp.asarray(_GL_X, dt), jnp.asarray(_GL_W, dt)
-    mu_c = safe_sqrt(1.0 - safe_div(1.0, eta**2, 1.0))[..., None]
-    mu = mu_c + (1.0 - mu_c) * x**2
-    fr = dipole.fresnel_reflectance(mu, 1.0 / eta[..., None]) * w * 2.0 * (1.0 - mu_c) * x
-    return tuple(mu_c[..., 0] ** (k + 1) / (k + 1) + jnp.sum(fr * mu**k, axis=-1) for k in ks)
 
 
 def _exp1(x):
@@ -157,7 +120,7 @@ def C_E(eta: ArrayLike) -> Array:
 
 def A_better(eta: ArrayLike) -> Array:
     """The better dipole's boundary constant `A = (1 + 3 C_2)/(1 - 2 C_1)`, `z_b = 2 A D`."""
-    c1, c2 = _fresnel_moments(eta, (1, 2))
+    c1, c2 = fresnel_moments(eta, (1, 2))
     return (1.0 + 3.0 * c2) / (1.0 - 2.0 * c1)
 
 
@@ -183,7 +146,7 @@ def _coeffs(sigma_a, sigmap_s, eta):
     rho = safe_div(sigmap_s, sigmap_t)
     D = diffusion_coefficient(sigma_a, sigmap_s)
     s = safe_sqrt(safe_div(sigma_a, D))
-    c1, c2 = _fresnel_moments(eta, (1, 2))
+    c1, c2 = fresnel_moments(eta, (1, 2))
     z_b = 2.0 * D * (1.0 + 3.0 * c2) / (1.0 - 2.0 * c1)
     return dict(
         sigmap_t=sigmap_t,

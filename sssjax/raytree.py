@@ -1,13 +1,14 @@
 """The rays behind one pixel, recorded by the renderer's own tracing code.
 
 `raytree(scene, pixel=(x, y))` re-runs, eagerly (not under `jit`), exactly the blocks of the
-render that contain the pixel: phase 1 (`SceneTracer._chain_block`: camera rays, specular
-chains, shadow rays) for the pixel's tile, and phase 2 (`SceneTracer._sss_block`: the dipole
-gather and single scattering) for the packed block the renderer puts the pixel in, with the
-same random keys. A recorder object attached to that tracer (`SceneTracer._rec`, `None` in
-every tracer the renderer uses) is called at the few places where rays are cast and keeps the
-rows of the chosen pixel. So the tree is the set of rays of the actual render, and the
-pixel's radiance recomputed from the recorded run equals the rendered one (tested).
+render that contain the pixel, with the render's own transport functions and random keys:
+`trace_block` (camera rays, specular chains, shadow rays) for the pixel's tile, and, for the
+two-phase diffusion transport, `trace_rows` (the dipole gather and single scattering) for
+the packed block the renderer puts the pixel in. Those functions take a recorder argument
+(`sssjax.transport.Recorder`; the renderer's compiled ones run with the no-op `NO_RECORD`),
+whose hooks are called at the few places where rays are cast; this module's keeps the rows
+of the chosen pixel. So the tree is the set of rays of the actual render, and the pixel's
+radiance recomputed from the recorded run equals the rendered one (tested).
 
 What is recorded (lengths in mm):
 
@@ -38,7 +39,6 @@ of a second.
 
 from __future__ import annotations
 
-import functools
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,8 +48,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._arrays import MaterialKind
 from ._files import check_outputs, save_figure, scene_inputs, write_text
 from .scene import Scene, load_scene
+from .transport import Recorder
 
 __all__ = ["KINDS", "RayTree", "raytree", "plot_raytree", "raytree_files"]
 
@@ -170,12 +172,14 @@ class RayTree:
 
 # --- the recorder -------------------------------------------------------------------------
 @dataclass
-class _Recorder:
+class _Recorder(Recorder):
     """Collects the rays of the rows `rows` (of the block being traced) of one pixel.
 
-    Called by `SceneTracer` hooks with the (eager) arrays of the whole block; keeps NumPy
+    Called by the transport's hooks with the (eager) arrays of the whole block; keeps NumPy
     copies of the selected rows only.
     """
+
+    active: ClassVar[bool] = True
 
     spp: int
     sss_on: bool
@@ -222,11 +226,9 @@ class _Recorder:
         """The segment ending at the first translucent vertex of the samples of rows `m`."""
         return np.array([self._first.get(int(i) % self.spp, -1) for i in m], np.int64)
 
-    # -- hooks called by SceneTracer ---------------------------------------------------------
+    # -- hooks called by the transport ---------------------------------------------------------
     def chain(self, depth, o, d, x, t_light, alive, hit_light, hit, kind, first) -> None:
-        """Rays of one depth of the specular chains (`_chain_block`)."""
-        from .trace import DIFFUSE
-
+        """Rays of one depth of the specular chains (`chain_block`)."""
         o, d, x, t_light = (np.asarray(a, float) for a in (o, d, x, t_light))
         alive, hit_light, hit, first = (np.asarray(a, bool) for a in (alive, hit_light, hit, first))
         kind = np.asarray(kind)
@@ -250,13 +252,13 @@ class _Recorder:
         # shadow rays whose result the render uses: at diffuse vertices, and at the first
         # translucent vertex of a sample (its E(x_o)) when subsurface scattering is on
         first = first & self.sss_on
-        used = sel & hit & ((kind == DIFFUSE) | first)
+        used = sel & hit & ((kind == MaterialKind.DIFFUSE) | first)
         self._ctx = np.where(used, self._prev, -1)
         for i in np.flatnonzero(sel & hit & first):
             self._first[int(i) % self.spp] = int(self._prev[i])
 
     def shadow(self, o, d, t, t_max) -> None:
-        """Shadow rays (`SceneTracer.occluded`): attributed to the current context."""
+        """Shadow rays (`SceneArrays.occluded`): attributed to the current context."""
         if self._ctx is None:
             return
         o, d = np.broadcast_arrays(np.asarray(o, float), np.asarray(d, float))
@@ -358,13 +360,10 @@ class _Recorder:
 _SEG_FIELDS = ("origin", "end", "kind", "depth", "sample", "parent", "miss")
 
 
-@functools.partial(jax.jit, static_argnames="profile")
-def _shade_sss(terms, media, r_nodes, profile=None):
-    """`shade_sss` compiled (the shading of the recorded terms; no rays are cast there), with
-    the scene's diffusion profile as `Renderer` uses it."""
-    from .shade import shade_sss
-
-    return shade_sss(terms, media, r_nodes, **({} if profile is None else {"profile": profile}))
+@jax.jit
+def _shade(terms, media):
+    """The shading of recorded terms (no rays are cast there), compiled as the renderer's."""
+    return terms.shade(media)
 
 
 def scene_extent(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
@@ -400,7 +399,6 @@ def raytree(
     rounding (eager versus compiled arithmetic).
     """
     from .render import as_key, renderer_for
-    from .trace import SceneTracer
 
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
@@ -417,52 +415,48 @@ def raytree(
     r = renderer if renderer is not None else renderer_for(scene)
     key = as_key(key, scene)
     pid = y * cam.width + x
-    S = scene.render.spp
-    tr = r.tracer
+    tm, arrays = r.transport, r.arrays
+    packs = tm.two_phase and tm.media_dependent
+    state = r.image_state(key, arrays)
 
-    # Phase 1 with the compiled renderer, chunk by chunk as `Renderer.render` does, up to the
-    # pixel's chunk: this fixes the packed phase-2 block (rows, slots, key) of the pixel.
-    cloud = r.cloud(key) if tr.sss_on else None
+    # The compiled renderer's tiles, chunk by chunk as `Renderer.render` does, up to the
+    # pixel's chunk: this fixes the packed second-phase block (rows, key) of the pixel.
     counter = [0]
     found = None
-    for pix, _base, slots in r.chunks(key, None):
-        if tr.sss_on:
-            for rows, valid, blk, keys in r.sss_blocks(key, slots, counter):
-                if found is not None:
-                    continue
-                at = np.argwhere(valid & (pix[rows] == pid))
-                if len(at):
+    for pix, _base, needs, rows in r.chunks(key, None, arrays, state):
+        if packs:
+            for rr, valid, blk, _valid, keys in r.packed(key, needs, rows, counter):
+                at = np.argwhere(valid & (pix[rr] == pid))
+                if found is None and len(at):
                     i, j = (int(v) for v in at[0])
-                    found = ({f: np.asarray(v[i]) for f, v in blk.items()}, keys[i], j)
+                    one = jax.tree_util.tree_map(lambda v, i=i: jnp.asarray(v[i]), blk)
+                    found = (one, jnp.asarray(valid[i]), keys[i], j)
         if np.any(pix == pid):
             break
 
-    # the eager tracer with the recorder (a separate instance: compiled ones never see it)
     lo, hi = scene_extent(scene)
-    rt = SceneTracer(scene)
-    rec = _Recorder(spp=S, sss_on=tr.sss_on, far=float(np.linalg.norm(hi - lo)) + 1.0)
-    rt._rec = rec
+    S = scene.render.spp
+    rec = _Recorder(spp=S, sss_on=tm.media_dependent, far=float(np.linalg.norm(hi - lo)) + 1.0)
+    media = tuple(scene.media()[n] for n in arrays.materials)
 
-    # phase 1 for the pixel's tile, with the tile's key (`Renderer.chunks`)
+    # the pixel's tile, with the tile's key (`Renderer.chunks`), eagerly with the recorder
     b = pid // r.block
     start = min(b, r.n_blocks - 1) * r.block
     pix_blk = np.minimum(start + np.arange(r.block), r.n_pixels - 1).astype(np.int32)
     pos = pid - start
     k_tile = jax.random.fold_in(jax.random.fold_in(key, 1), b)
     rec.begin(np.arange(r.block * S) // S == pos)
-    base, _ = rt._chain_block(jnp.asarray(pix_blk), k_tile)
+    base, needs, rows = tm.trace_block(arrays, state, jnp.asarray(pix_blk), k_tile, rec)
     L = np.asarray(base)[pos].astype(float)
+    if tm.media_dependent and not tm.two_phase and bool(needs[pos]):
+        L = L + np.asarray(_shade(rows.rows(jnp.asarray([pos])), media))[0]
 
-    # phase 2 for the pixel's packed block, with its key (`Renderer.sss_blocks`)
+    # a two-phase transport: the pixel's packed block, with its key (`Renderer.packed`)
     if found is not None:
-        blk, k_blk, j = found
+        blk, valid, k_blk, j = found
         rec.begin(np.arange(r.block * S) // S == j)
-        terms = rt._sss_block({f: jnp.asarray(v) for f, v in blk.items()}, k_blk, cloud)
-        media = tuple(scene.media()[n] for n in tr.tmat_names)
-        profile = getattr(scene.sss, "profile", None)
-        Ls = _shade_sss(terms, media, jnp.asarray(tr.r_nodes, dtype=float), profile=profile)
-        L = L + np.asarray(Ls)[j]
-    rt._rec = None
+        terms = tm.trace_rows(arrays, state, blk, valid, k_blk, rec)
+        L = L + np.asarray(_shade(terms, media))[j]
     return rec.tree((x, y), L)
 
 
@@ -483,22 +477,18 @@ def _style(kcode: int) -> dict:
     return dict(linewidths=1.1 if kcode in (SS_REFRACTED, SS_LIGHT) else 0.9, alpha=0.9, zorder=2)
 
 
-def plot_raytree(
-    tree: RayTree,
-    scene: Scene,
-    path: str | Path,
-    *,
-    image: np.ndarray | None = None,
-    note: str = "",
-    dpi: int = 110,
-) -> Path:
-    """Draw `tree` over `image` (linear RGB seen by the scene camera, any resolution) and in a
-    side view (orthographic, looking along the camera's right axis), coloured by kind.
+def _heavy_points(tree: RayTree):
+    """The dipole points drawn (area ~ weight; those under 1% of the heaviest are left out)
+    and their marker sizes."""
+    wmax = float(tree.point_weight.max()) if tree.point_weight.size else 0.0
+    heavy = tree.point_weight >= POINT_MIN_WEIGHT * wmax if wmax > 0 else tree.point_weight > 0
+    sizes = 0.3 + 12.0 * tree.point_weight[heavy] / (wmax if wmax > 0 else 1.0)
+    return tree.points[heavy], sizes
 
-    **Returns:** the path of the PNG written.
-    """
+
+def _camera_view(ax0, tree: RayTree, scene: Scene, image, note: str, pts, sizes) -> None:
+    """The segments and points over the image, seen by the scene camera."""
     from matplotlib.collections import LineCollection
-    from matplotlib.lines import Line2D
 
     from .camera import project
     from .imageio import srgb_encode, tonemap
@@ -507,27 +497,10 @@ def plot_raytree(
     plt = _pyplot()
     cam = scene.camera
     W, H = cam.width, cam.height
-    fwd, right, up = (np.asarray(v, float) for v in cam.basis())
+    fwd = np.asarray(cam.basis()[0], float)
     org = np.asarray(cam.origin, float)
     lo, hi = scene_extent(scene)
     scale = float(np.linalg.norm(hi - lo))
-    counts = tree.counts()
-
-    close_up = bool(np.any(tree.of_kind("ss_refracted", "ss_light", "dipole")))
-    if close_up:
-        fig, (ax0, ax1, ax2) = plt.subplots(
-            1, 3, figsize=(19, 6.6), facecolor="#111111", width_ratios=(1.35, 1, 1)
-        )
-    else:
-        fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(14, 6.6), facecolor="#111111")
-        ax2 = None
-    for ax in (ax0, ax1, ax2) if close_up else (ax0, ax1):
-        ax.set_facecolor("#1b1b1b")
-        ax.tick_params(colors="#bbbbbb", labelsize=8)
-        for s in ax.spines.values():
-            s.set_color("#555555")
-
-    # -- camera view --------------------------------------------------------------------
     if image is not None:
         ax0.imshow(srgb_encode(tonemap(np.asarray(image))), extent=(0, W, H, 0))
     z_o = (tree.origin - org) @ fwd
@@ -544,11 +517,6 @@ def plot_raytree(
         if s.any():
             segs = np.stack([pa[s], pb[s]], axis=1)
             ax0.add_collection(LineCollection(segs, colors=COLORS[KINDS[kcode]], **_style(kcode)))
-    # dipole points: area ~ weight; those under 1% of the heaviest are left out
-    wmax = float(tree.point_weight.max()) if tree.point_weight.size else 0.0
-    heavy = tree.point_weight >= POINT_MIN_WEIGHT * wmax if wmax > 0 else tree.point_weight > 0
-    pts = tree.points[heavy]
-    sizes = 0.3 + 12.0 * tree.point_weight[heavy] / (wmax if wmax > 0 else 1.0)
     if len(pts):
         zp = (pts - org) @ fwd
         ok = zp > 0 if cam.projection != "orthographic" else np.ones(len(zp), bool)
@@ -560,6 +528,80 @@ def plot_raytree(
     ax0.set_ylim(H, 0)
     ax0.set_aspect("equal")
     ax0.set_title(f"camera view{(' — ' + note) if note else ''}", color="#dddddd", fontsize=10)
+
+
+def _legend_handles(tree: RayTree, counts: dict, pts) -> list:
+    """One legend entry per kind present, and the dipole points."""
+    from matplotlib.lines import Line2D
+
+    handles = [
+        Line2D(
+            [],
+            [],
+            color=COLORS[k],
+            lw=2,
+            ls="--" if k == "shadow_blocked" else "-",
+            label=f"{k.replace('_', ' ')} ({counts[k]})",
+        )
+        for k in KINDS
+        if counts[k]
+    ]
+    if tree.points.size:
+        handles.append(
+            Line2D(
+                [],
+                [],
+                ls="",
+                marker="o",
+                color=POINT_COLOR,
+                label=f"dipole samples ({len(tree.points)}; {len(pts)} drawn: weight >= 1% "
+                "of the heaviest, area ~ weight)",
+            )
+        )
+    return handles
+
+
+def plot_raytree(
+    tree: RayTree,
+    scene: Scene,
+    path: str | Path,
+    *,
+    image: np.ndarray | None = None,
+    note: str = "",
+    dpi: int = 110,
+) -> Path:
+    """Draw `tree` over `image` (linear RGB seen by the scene camera, any resolution) and in a
+    side view (orthographic, looking along the camera's right axis), coloured by kind.
+
+    **Returns:** the path of the PNG written.
+    """
+    from matplotlib.collections import LineCollection
+
+    from .plots import _pyplot
+
+    plt = _pyplot()
+    cam = scene.camera
+    fwd, right, up = (np.asarray(v, float) for v in cam.basis())
+    org = np.asarray(cam.origin, float)
+    counts = tree.counts()
+
+    close_up = bool(np.any(tree.of_kind("ss_refracted", "ss_light", "dipole")))
+    if close_up:
+        fig, (ax0, ax1, ax2) = plt.subplots(
+            1, 3, figsize=(19, 6.6), facecolor="#111111", width_ratios=(1.35, 1, 1)
+        )
+    else:
+        fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(14, 6.6), facecolor="#111111")
+        ax2 = None
+    for ax in (ax0, ax1, ax2) if close_up else (ax0, ax1):
+        ax.set_facecolor("#1b1b1b")
+        ax.tick_params(colors="#bbbbbb", labelsize=8)
+        for s in ax.spines.values():
+            s.set_color("#555555")
+
+    pts, sizes = _heavy_points(tree)
+    _camera_view(ax0, tree, scene, image, note, pts, sizes)
+    order = [CAMERA, DIPOLE, SS_REFRACTED, SS_LIGHT, SHADOW_BLOCKED, SHADOW, REFLECTED]
 
     # -- side views: orthographic along the camera's right axis ---------------------------
     def side(p):
@@ -615,30 +657,7 @@ def plot_raytree(
         half = max(1.2 * float(np.max(np.abs(ends - c))), 0.5)
         draw_side(ax2, c - half, c + half, "close-up of the subsurface paths (side view)")
 
-    handles = [
-        Line2D(
-            [],
-            [],
-            color=COLORS[k],
-            lw=2,
-            ls="--" if k == "shadow_blocked" else "-",
-            label=f"{k.replace('_', ' ')} ({counts[k]})",
-        )
-        for k in KINDS
-        if counts[k]
-    ]
-    if tree.points.size:
-        handles.append(
-            Line2D(
-                [],
-                [],
-                ls="",
-                marker="o",
-                color=POINT_COLOR,
-                label=f"dipole samples ({len(tree.points)}; {len(pts)} drawn: weight >= 1% "
-                "of the heaviest, area ~ weight)",
-            )
-        )
+    handles = _legend_handles(tree, counts, pts)
     fig.legend(
         handles=handles,
         loc="lower center",
@@ -649,6 +668,7 @@ def plot_raytree(
         labelcolor="#eeeeee",
     )
     rad = ", ".join(f"{v:.4g}" for v in tree.radiance)
+    x, y = tree.pixel
     fig.suptitle(
         f"rays behind pixel ({x}, {y}), {tree.spp} spp: {len(tree)} segments; radiance ({rad})",
         color="#eeeeee",

@@ -393,6 +393,8 @@ def _check(name, value, ok, what):
         raise ValueError(f"reference.simulate: {name} must be {what}, got {value!r}")
 
 
+# `simulate` is long for its signature and documented arguments (about 55 lines); its body,
+# checks then the batched walk loop, reads best in one piece.
 def simulate(
     sigma_a: float,
     sigma_s: float,

@@ -1,15 +1,17 @@
-"""Rendering a whole image: tiles, devices, progress. `render = shade . trace`, tile by tile.
+"""Rendering a whole image: tiles, devices, packing, progress. `render = shade . trace`.
 
-Memory is bounded by the tile size: a tile of `tile x tile` pixels is traced, shaded and
-dropped before the next. Tiles are processed in groups of one per JAX device, sharded over
-all devices with `jax.sharding` (each tile's random key is derived from the seed and the tile
-index only, so the image does not depend on the number of devices).
+The scene becomes `SceneArrays` once; its transport (`TRANSPORTS[scene.sss.transport]`)
+traces fixed-size blocks of pixels. Memory is bounded by the tile size: a tile of
+`tile x tile` pixels is traced, shaded and dropped before the next. Tiles are processed in
+groups of one per JAX device, sharded over all devices with `jax.sharding` (each tile's
+random key is derived from the seed and the tile index only, so the image does not depend
+on the number of devices). A two-phase transport's second phase runs on the rows that need
+it, packed into full blocks. The arrays are an argument of every compiled function, so a
+refractive index or a light's emission changes without recompiling.
 """
 
 from __future__ import annotations
 
-import sys
-import time
 from collections.abc import Mapping
 
 import jax
@@ -17,14 +19,15 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ._arrays import SceneArrays
 from ._budget import check_memory
 from ._progress import Progress
 from .media import Medium
 from .scene import Scene
-from .shade import shade_image, shade_sss
-from .trace import SSS_FIELDS, SceneTracer, Transport
+from .shade import shade_image
+from .transport import TRANSPORTS, Terms, Transport
 
-__all__ = ["render", "trace_tiles", "Renderer", "renderer_for", "as_key"]
+__all__ = ["render", "trace", "Renderer", "renderer_for", "as_key"]
 
 
 def as_key(key, scene: Scene):
@@ -36,43 +39,37 @@ def as_key(key, scene: Scene):
     return key
 
 
-class _Progress:
-    def __init__(self, total: int, label: str, enabled: bool):
-        self.total, self.label, self.enabled = total, label, enabled
-        self.t0 = time.perf_counter()
-
-    def update(self, done: int) -> None:
-        if not self.enabled:
-            return
-        frac = done / self.total
-        bar = "#" * int(30 * frac) + "-" * (30 - int(30 * frac))
-        dt = time.perf_counter() - self.t0
-        end = "\n" if done == self.total else ""
-        print(
-            f"\r{self.label} [{bar}] {done}/{self.total} tiles  {dt:6.1f} s",
-            end=end,
-            file=sys.stderr,
-            flush=True,
-        )
-
-
 CHUNK_TILES = 16  # tiles per chunk: the unit of host-side packing (bounds host memory)
 
 
-class Renderer:
-    """A scene's compiled tracer plus the tiling, packing and device layout.
+def _take(rows, idx):
+    """Rows `idx` of a per-row pytree: `Terms.rows`, or indexing every leaf."""
+    if isinstance(rows, Terms):
+        return rows.rows(idx)
+    return jax.tree_util.tree_map(lambda v: v[idx], rows)
 
-    Rendering runs in chunks of `CHUNK_TILES` tiles. Phase 1 traces camera paths of every
-    tile; phase 2 (the subsurface gather and single scattering, the expensive part) runs only
-    on the pixels that see a translucent object, packed into blocks of one tile's size. Each
-    tile and block gets a key folded from the seed and its index, so images do not depend on
-    the number of devices.
+
+def _concat(parts: list):
+    """Per-row pytrees one after the other."""
+    if isinstance(parts[0], Terms):
+        return type(parts[0]).concat(parts)
+    return jax.tree_util.tree_map(lambda *v: np.concatenate(v), *parts)
+
+
+class Renderer:
+    """A scene's arrays and compiled transport, plus the tiling, packing and device layout.
+
+    Rendering runs in chunks of `CHUNK_TILES` tiles: `trace_block` on every tile, then, for
+    a two-phase transport, `trace_rows` on the rows that need it packed into blocks of one
+    tile's size. Each tile and block gets a key folded from the seed and its index, so
+    images do not depend on the number of devices.
     """
 
     def __init__(self, scene: Scene, devices=None):
         check_memory(scene)  # one line before allocating, for a render that cannot fit
         self.scene = scene
-        self.tracer = SceneTracer(scene)
+        self.arrays = SceneArrays.from_scene(scene)
+        self.transport = TRANSPORTS.get_entry(scene.sss.transport)(self.arrays)
         self.devices = list(devices) if devices is not None else jax.devices()
         self.mesh = Mesh(np.array(self.devices), ("tiles",))
         self.sharding = NamedSharding(self.mesh, PartitionSpec("tiles"))
@@ -80,38 +77,45 @@ class Renderer:
         self.n_pixels = cam.width * cam.height
         self.block = min(scene.render.tile**2, self.n_pixels)
         self.n_blocks = -(-self.n_pixels // self.block)
-        tr = self.tracer
+        tm = self.transport
+        tiles, whole = PartitionSpec("tiles"), PartitionSpec()
 
-        def chain(pix, keys, eta, gain):
+        def sharded(fn, n_rest: int = 0):
             # one tile per device, each run as its own program (not vmapped: a vmapped
-            # `switch` would run every branch, and the chain skips the bounces of dead rays)
-            base, slots = tr.with_params(tr._chain_block, pix[0], keys[0], eta=eta, gain=gain)
-            return base[None], jax.tree_util.tree_map(lambda a: a[None], slots)
+            # `switch` would run every branch, and the chains skip the bounces of dead rays)
+            def per_device(arrays, state, pix, keys, *rest):
+                out = fn(arrays, state, pix[0], keys[0], *rest)
+                return jax.tree_util.tree_map(lambda a: a[None], out)
 
-        spec = PartitionSpec("tiles")
-        self._chain = jax.jit(
-            jax.shard_map(
-                chain,
-                mesh=self.mesh,
-                in_specs=(spec, spec, PartitionSpec(), PartitionSpec()),
-                out_specs=spec,
-                check_vma=False,
+            specs = (whole, whole, tiles, tiles) + (whole,) * n_rest
+            return jax.jit(
+                jax.shard_map(
+                    per_device, mesh=self.mesh, in_specs=specs, out_specs=tiles, check_vma=False
+                )
             )
-        )
 
-        def sss(slots, keys, cloud, eta, gain):
-            def one(s, k):
-                return tr.with_params(tr._sss_block, s, k, cloud, eta=eta, gain=gain)
+        def block(arrays, state, pix, key):
+            return tuple(tm.trace_block(arrays, state, pix, key))
 
-            return jax.vmap(one)(slots, keys)
+        def block_shaded(arrays, state, pix, key, media):
+            base, needs, terms = tm.trace_block(arrays, state, pix, key)
+            return base + jnp.where(needs[:, None], terms.shade(media), 0.0)
 
-        def sss_shaded(slots, keys, cloud, media, eta, gain):
-            blocks = sss(slots, keys, cloud, eta, gain)
-            r = jnp.asarray(tr.r_nodes, dtype=float)
-            return jax.vmap(lambda b: shade_sss(b, media, r, profile=scene.sss.profile))(blocks)
+        self._block = sharded(block)
+        self._block_shaded = sharded(block_shaded, n_rest=1)
+        self._state = jax.jit(tm.image_state)
 
-        self._sss = jax.jit(sss)
-        self._sss_shaded = jax.jit(sss_shaded)
+        def rows(arrays, state, blk, valid, keys):
+            return jax.vmap(lambda b, v, k: tm.trace_rows(arrays, state, b, v, k))(blk, valid, keys)
+
+        def rows_shaded(arrays, state, blk, valid, keys, media):
+            def one(b, v, k):
+                return tm.trace_rows(arrays, state, b, v, k).shade(media)
+
+            return jax.vmap(one)(blk, valid, keys)
+
+        self._rows = jax.jit(rows)
+        self._rows_shaded = jax.jit(rows_shaded)
 
     @property
     def D(self) -> int:
@@ -123,144 +127,139 @@ class Renderer:
     def _keys(self, key, idx):
         return self._put(jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.asarray(idx)))
 
-    def cloud(self, key, eta=None, gain=None):
-        return self.tracer.cloud(jax.random.fold_in(key, 0x5C0FFEE), eta, gain)
+    def arrays_for(self, etas: Mapping | None = None, gain=None) -> SceneArrays:
+        """The scene's arrays with translucent materials' refractive indices `etas` (by
+        name; geometry: they bend rays) and each light's emission times `gain` (one factor
+        per light, scene order)."""
+        return self.arrays.with_eta(etas).with_gain(gain)
 
-    def chunks(self, key, progress_label: str | None, eta=None, gain=None):
-        """Run phase 1 over chunks of tiles. Yields `(pixels, base, slots)` per chunk (host).
+    def image_state(self, key, arrays: SceneArrays | None = None):
+        """The transport's state shared by every block of the image of `key` (the diffusion
+        transport's irradiance cloud)."""
+        return self._state(self.arrays if arrays is None else arrays, as_key(key, self.scene))
 
-        `eta`: per-shape refractive index (`SceneTracer.eta_for`), default the scene's;
-        `gain`: per-light emission factors (default 1)."""
-        eta = jnp.asarray(self.tracer.eta_for() if eta is None else eta, dtype=float)
-        gain = self.tracer.gain_for(gain)
+    def chunks(self, key, progress_label: str | None, arrays, state, media=None):
+        """Trace every tile, in chunks. Yields `(pixels, base, needs, rows)` per chunk (host
+        arrays, one row per pixel; see `Block`). With `media` (one-phase transports only)
+        `base` is the shaded radiance and `rows` None."""
         k_tiles = jax.random.fold_in(key, 1)
         bar = Progress(self.n_blocks, progress_label or "", progress_label is not None)
         step = max(CHUNK_TILES, self.D) // self.D * self.D
         for c0 in range(0, self.n_blocks, step):
-            pix_l, base_l, slot_l = [], [], []
+            pix_l, base_l, needs_l, rows_l = [], [], [], []
             for g0 in range(c0, min(c0 + step, self.n_blocks), self.D):
                 idx = np.arange(g0, g0 + self.D)
                 starts = np.minimum(idx, self.n_blocks - 1) * self.block
                 pix = starts[:, None] + np.arange(self.block)[None, :]
                 pix = np.minimum(pix, self.n_pixels - 1).astype(np.int32)
-                base, slots = self._chain(
-                    self._put(jnp.asarray(pix)), self._keys(k_tiles, idx), eta, gain
-                )
+                args = (arrays, state, self._put(jnp.asarray(pix)), self._keys(k_tiles, idx))
                 n = min(self.D, self.n_blocks - g0)
-                pix_l.append(pix[:n])
-                base_l.append(np.asarray(base)[:n])
-                slot_l.append({f: np.asarray(v)[:n] for f, v in slots.items()})
+                if media is None:
+                    base, needs, rows = self._block(*args)
+                    needs_l.append(np.asarray(needs)[:n].reshape(-1))
+                    host = jax.tree_util.tree_map(np.asarray, rows)
+                    rows_l += [jax.tree_util.tree_map(lambda a, i=i: a[i], host) for i in range(n)]
+                else:
+                    base = self._block_shaded(*args, media)
+                pix_l.append(pix[:n].reshape(-1))
+                base_l.append(np.asarray(base)[:n].reshape(-1, 3))
                 bar.update(g0 + n)
-            pix = np.concatenate(pix_l).reshape(-1)
-            base = np.concatenate(base_l).reshape(-1, 3)
-            slots = {
-                f: np.concatenate([s[f] for s in slot_l]).reshape(-1, *slot_l[0][f].shape[2:])
-                for f in slot_l[0]
-            }
+            pix = np.concatenate(pix_l)
             # the last tile is padded with repeats of the last pixel: keep the first copy
             pix, first = np.unique(pix, return_index=True)
-            yield pix, base[first], {f: v[first] for f, v in slots.items()}
+            base = np.concatenate(base_l)[first]
+            if media is not None:
+                yield pix, base, np.zeros(len(pix), bool), None
+                continue
+            yield pix, base, np.concatenate(needs_l)[first], _take(_concat(rows_l), first)
 
-    def sss_blocks(self, key, slots: dict, counter: list[int]):
-        """Phase 2 input: the rows with a translucent sample, packed into blocks.
-
-        Yields `(rows (D, block), valid (D, block), slots (D, block, spp, ...), keys)`.
-        """
-        rows = np.flatnonzero(np.any(slots["have"], axis=1))
-        nb = -(-len(rows) // self.block)
-        k_sss = jax.random.fold_in(key, 2)
+    def packed(self, key, needs: np.ndarray, rows, counter: list[int]):
+        """A two-phase transport's second-phase input: the rows that `need` it, packed into
+        blocks. Yields `(row indices (D, block), valid (D, block), rows (D, block, ...),
+        valid on the devices, keys)`."""
+        sel = np.flatnonzero(needs)
+        nb = -(-len(sel) // self.block)
+        k_rows = jax.random.fold_in(key, 2)
         for g0 in range(0, nb, self.D):
             idx = np.arange(g0, g0 + self.D)
             pos = idx[:, None] * self.block + np.arange(self.block)[None, :]
-            valid = pos < len(rows)
-            r = np.where(valid, rows[np.minimum(pos, max(len(rows) - 1, 0))], 0)
-            blk = {f: v[r] for f, v in slots.items()}
-            blk["have"] = blk["have"] & valid[:, :, None]
-            keys = self._keys(k_sss, counter[0] + idx)
-            yield r, valid, {f: self._put(jnp.asarray(v)) for f, v in blk.items()}, keys
+            valid = pos < len(sel)
+            r = np.where(valid, sel[np.minimum(pos, max(len(sel) - 1, 0))], 0)
+            blk = jax.tree_util.tree_map(lambda v: self._put(jnp.asarray(v[r])), rows)
+            keys = self._keys(k_rows, counter[0] + idx)
+            yield r, valid, blk, self._put(jnp.asarray(valid)), keys
         counter[0] += nb
 
     def render(self, key, media, progress: bool) -> np.ndarray:
+        """The `(H, W, 3)` image for `media` (one `Medium` per translucent material, in
+        `arrays.materials` order; their `eta` bends the rays as well as entering the
+        profile)."""
         key = as_key(key, self.scene)
         media = tuple(media)
+        tm = self.transport
         img = np.zeros((self.n_pixels, 3), jnp.result_type(float))  # float64 under x64
-        sss_on = self.tracer.sss_on
-        # the media's eta bends the rays as well as entering the profile
-        names = self.tracer.tmat_names
-        etas = {n: m.eta for n, m in zip(names, media, strict=True)}
-        eta = jnp.asarray(self.tracer.eta_for(etas), dtype=float)
-        gain = self.tracer.gain_for()
-        cloud = self.cloud(key, eta, gain) if sss_on else None
+        arrays = self.arrays_for(
+            {n: m.eta for n, m in zip(self.arrays.materials, media, strict=True)}
+        )
+        state = self.image_state(key, arrays)
+        fused = None if tm.two_phase or not tm.media_dependent else media
         counter = [0]
-        for pix, base, slots in self.chunks(key, "rendering" if progress else None, eta, gain):
+        label = "rendering" if progress else None
+        for pix, base, needs, rows in self.chunks(key, label, arrays, state, fused):
             img[pix] = base
-            if not sss_on:
+            if not (tm.two_phase and tm.media_dependent):
                 continue
-            for rows, valid, blk, keys in self.sss_blocks(key, slots, counter):
-                L = np.asarray(self._sss_shaded(blk, keys, cloud, media, eta, gain))
-                img[pix[rows[valid]]] += L[valid]
+            for r, valid, blk, valid_d, keys in self.packed(key, needs, rows, counter):
+                L = np.asarray(self._rows_shaded(arrays, state, blk, valid_d, keys, media))
+                img[pix[r[valid]]] += L[valid]
         cam = self.scene.camera
         return img.reshape(cam.height, cam.width, 3)
 
-    def trace(self, key, progress: bool, etas: dict | None = None, gain=None) -> Transport:
-        """The transport of the whole image; `etas` overrides translucent materials'
+    def trace(self, key, progress: bool = False, etas: Mapping | None = None, gain=None):
+        """The `Transport` of the whole image; `etas` overrides translucent materials'
         refractive index by name (geometry: it bends rays) and `gain` multiplies each
         light's emission (one factor per light, scene order), without recompiling."""
         key = as_key(key, self.scene)
-        tr = self.tracer
-        eta = jnp.asarray(tr.eta_for(etas), dtype=float)
-        gain = tr.gain_for(gain)
-        cloud = self.cloud(key, eta, gain) if tr.sss_on else None
+        tm = self.transport
+        arrays = self.arrays_for(etas, gain)
+        state = self.image_state(key, arrays)
         counter = [0]
-        pix_all, base_all, rows_all, blocks = [], [], [], []
+        pix_all, base_all, rows_all, parts = [], [], [], []
         offset = 0
-        for pix, base, slots in self.chunks(key, "tracing" if progress else None, eta, gain):
+        for pix, base, needs, rows in self.chunks(
+            key, "tracing" if progress else None, arrays, state
+        ):
             pix_all.append(pix)
             base_all.append(base)
-            if tr.sss_on:
-                for rows, valid, blk, keys in self.sss_blocks(key, slots, counter):
-                    out = jax.tree_util.tree_map(np.asarray, self._sss(blk, keys, cloud, eta, gain))
-                    for i in range(rows.shape[0]):
-                        v = valid[i]
-                        if not v.any():
-                            continue
-                        rows_all.append(offset + rows[i][v])
-                        blocks.append(_take_block(out, i, v))
+            if not tm.media_dependent:
+                pass
+            elif not tm.two_phase:
+                sel = np.flatnonzero(needs)
+                rows_all.append(offset + sel)
+                parts.append(rows.rows(sel))
+            else:
+                for r, valid, blk, valid_d, keys in self.packed(key, needs, rows, counter):
+                    out = jax.tree_util.tree_map(
+                        np.asarray, self._rows(arrays, state, blk, valid_d, keys)
+                    )
+                    for i in range(r.shape[0]):
+                        if valid[i].any():
+                            rows_all.append(offset + r[i][valid[i]])
+                            one = jax.tree_util.tree_map(lambda a, i=i: a[i], out)
+                            parts.append(one.rows(np.flatnonzero(valid[i])))
             offset += len(pix)
-        Mt, B, K = len(tr.tmat_names), tr.bins, tr.ss_per_sample
-        if blocks:
-            cat = {
-                f: np.concatenate([b[f] for b in blocks], axis=2 if f == "ms_hist" else 0)
-                for f in blocks[0]
-            }
-            t_rows = np.concatenate(rows_all)
-        else:
-            shapes = {"ms_hist": (Mt, 3, 0, B), "ss_weight": (0, K, 3)}
-            cat = {
-                f: np.zeros(shapes.get(f, (0, K)), np.int32 if f == "ss_mat" else np.float32)
-                for f in SSS_FIELDS
-            }
-            t_rows = np.zeros(0, np.int64)
+        terms = type(parts[0]).concat(parts) if parts else tm.empty_terms()
+        terms = jax.tree_util.tree_map(jnp.asarray, terms)
+        t_rows = np.concatenate(rows_all) if rows_all else np.zeros(0, np.int64)
         return Transport(
             pixels=jnp.asarray(np.concatenate(pix_all)),
             base=jnp.asarray(np.concatenate(base_all)),
             t_rows=jnp.asarray(t_rows.astype(np.int32)),
-            r_nodes=jnp.asarray(tr.r_nodes, dtype=float),
+            terms=terms,
             width=self.scene.camera.width,
             height=self.scene.camera.height,
-            materials=tr.tmat_names,
-            profile=self.scene.sss.profile,
-            **{f: jnp.asarray(v) for f, v in cat.items()},
+            materials=self.arrays.materials,
         )
-
-
-def _take_block(out, i: int, valid: np.ndarray) -> dict:
-    """Block `i` of a batch of `SSSBlock`s, keeping its `valid` rows."""
-    d = {}
-    for f in SSS_FIELDS:
-        a = getattr(out, f)[i]
-        d[f] = a[:, :, valid] if f == "ms_hist" else a[valid]
-    return d
 
 
 _CACHE: list[tuple[Scene, tuple, Renderer]] = []
@@ -281,8 +280,15 @@ def renderer_for(scene: Scene, devices=None) -> Renderer:
     return r
 
 
-def trace_tiles(scene: Scene, key=None, *, progress: bool = False) -> Transport:
-    """`trace` over the whole image, tile by tile (see `sssjax.trace.trace`)."""
+def trace(scene: Scene, key=None, *, progress: bool = False) -> Transport:
+    """The geometric pass over the whole image: `render = shade . trace`.
+
+    **Arguments:** `scene` from `load_scene`; `key` a `jax.random` key or an integer seed
+    (default: the scene's `render.seed`); `progress`: a progress bar over tiles on stderr.
+
+    **Returns:** a `Transport` for every pixel (its memory grows with the image: for large
+    images use `render`, which traces and shades tile by tile).
+    """
     return renderer_for(scene).trace(key, progress)
 
 
@@ -324,14 +330,14 @@ def render(
                 f"(translucent materials: {', '.join(m) or 'none'})"
             )
         m.update(media)
-    ordered = tuple(m[n] for n in r.tracer.tmat_names)
+    ordered = tuple(m[n] for n in r.arrays.materials)
     leaves = jax.tree_util.tree_leaves(ordered)
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
         # under jax.grad / jacfwd / vmap: the differentiable path, shade(trace(scene)); the
         # media's eta bends the rays of the trace too, unless it is being differentiated
         etas = {
             n: float(md.eta)
-            for n, md in zip(r.tracer.tmat_names, ordered, strict=True)
+            for n, md in zip(r.arrays.materials, ordered, strict=True)
             if not isinstance(md.eta, jax.core.Tracer)
         }
         return shade_image(r.trace(key, progress, etas), ordered)

@@ -9,19 +9,22 @@ linear RGB (a single number is broadcast to grey). See `scenes/*.toml` for examp
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import math
+import re
 import tomllib
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
+import jax
 import numpy as np
 
+from ._registry import did_you_mean
 from .media import Medium, preset, preset_names
-from .profiles import PROFILES, check_profile
+from .profiles import check_profile
+from .transport import STRATEGIES, TRANSPORTS
 
 __all__ = [
     "SceneError",
@@ -36,6 +39,8 @@ __all__ = [
     "SSSSettings",
     "Scene",
     "load_scene",
+    "dump_scene",
+    "scene_dict",
 ]
 
 
@@ -52,12 +57,6 @@ def _emission(light) -> np.ndarray:
         if hasattr(light, f):
             return np.asarray(getattr(light, f))
     return np.ones(3)
-
-
-def did_you_mean(word: str, options) -> str:
-    """`"; did you mean 'x'?"` for the closest of `options` to `word`, or `""`."""
-    close = difflib.get_close_matches(str(word), list(options), n=1)
-    return f"; did you mean '{close[0]}'?" if close else ""
 
 
 def read_toml(path: Path, error: type[Exception], what: str) -> dict:
@@ -77,8 +76,40 @@ def read_toml(path: Path, error: type[Exception], what: str) -> dict:
 
 
 # --- the parsed scene ------------------------------------------------------------------
-@dataclass(frozen=True)
-class Camera:
+def _value_key(v: Any) -> Any:
+    """A hashable stand-in for `v` that is equal exactly when the values are: arrays by
+    dtype, shape and bytes, pytrees (shapes, media) by structure and leaves, dataclasses by
+    their compared fields."""
+    if isinstance(v, np.ndarray | jax.Array | np.generic):
+        a = np.asarray(v)
+        return ("array", a.dtype.str, a.shape, a.tobytes())
+    if isinstance(v, _Value):
+        fs = dataclasses.fields(v)
+        return (type(v).__name__, *(_value_key(getattr(v, f.name)) for f in fs if f.compare))
+    if isinstance(v, Mapping):
+        return ("map", *((k, _value_key(x)) for k, x in v.items()))
+    if isinstance(v, list | tuple):
+        return ("seq", *(_value_key(x) for x in v))
+    if isinstance(v, int | float | str | bool | type(None)):
+        return v
+    leaves, treedef = jax.tree_util.tree_flatten(v)  # an eqx.Module (shape, medium)
+    return ("tree", type(v).__name__, treedef, *(_value_key(x) for x in leaves))
+
+
+class _Value:
+    """Equality and hashing by value (arrays element-wise), for the frozen scene records:
+    `load_scene(dump_scene(scene)) == scene`, and a scene's camera and settings can be
+    static parts of a jitted function's arguments."""
+
+    def __eq__(self, other) -> bool:
+        return type(self) is type(other) and _value_key(self) == _value_key(other)
+
+    def __hash__(self) -> int:
+        return hash(_value_key(self))
+
+
+@dataclass(frozen=True, eq=False)
+class Camera(_Value):
     """A pinhole or orthographic camera; positions in mm.
 
     `projection = "pinhole"`: `fov` is the vertical field of view in degrees.
@@ -113,10 +144,13 @@ class Camera:
         return fwd, right, up
 
 
-@dataclass(frozen=True)
-class AreaLight:
+@dataclass(frozen=True, eq=False)
+class AreaLight(_Value):
     """A one-sided emitting parallelogram `corner + u edge_u + v edge_v`, emitting `radiance`
     (W mm^-2 sr^-1, RGB) towards `edge_u x edge_v`."""
+
+    kind: ClassVar[str] = "area"  # `type` in a scene file
+    emission: ClassVar[str] = "radiance"  # the field the image is linear in
 
     corner: np.ndarray
     edge_u: np.ndarray
@@ -133,20 +167,26 @@ class AreaLight:
         return float(np.linalg.norm(np.cross(self.edge_u, self.edge_v)))
 
 
-@dataclass(frozen=True)
-class PointLight:
+@dataclass(frozen=True, eq=False)
+class PointLight(_Value):
     """An isotropic point light of RGB `intensity` (W sr^-1) at `position` (mm)."""
+
+    kind: ClassVar[str] = "point"
+    emission: ClassVar[str] = "intensity"
 
     position: np.ndarray
     intensity: np.ndarray
 
 
-@dataclass(frozen=True)
-class BeamLight:
+@dataclass(frozen=True, eq=False)
+class BeamLight(_Value):
     """A collimated beam of circular cross-section: it leaves the disc of `radius` (mm)
     around `position`, perpendicular to `direction`, and carries RGB `power` (W) along
     `direction`. A surface it hits at incidence angle `theta` receives irradiance
     `power cos(theta) / (pi radius^2)` inside the beam (Jensen's measurement setup)."""
+
+    kind: ClassVar[str] = "beam"
+    emission: ClassVar[str] = "power"
 
     position: np.ndarray
     direction: np.ndarray
@@ -154,8 +194,8 @@ class BeamLight:
     power: np.ndarray
 
 
-@dataclass(frozen=True)
-class Material:
+@dataclass(frozen=True, eq=False)
+class Material(_Value):
     """`type` is `diffuse` (uses `albedo`), `mirror` (`reflectance`) or `translucent` (`medium`)."""
 
     name: str
@@ -165,17 +205,22 @@ class Material:
     medium: Medium | None = None
 
 
-@dataclass(frozen=True)
-class ShapeSpec:
-    """One shape instance: the geometry object from `sssjax.shapes` and its material name."""
+@dataclass(frozen=True, eq=False)
+class ShapeSpec(_Value):
+    """One shape instance: the geometry object from `sssjax.shapes` and its material name.
+
+    `params` are the validated fields it was built from (placement and the kind's own:
+    `radius`, `size`, ...; a mesh's `vertices` and `faces`, or its OBJ `file` resolved), which
+    the scene writer writes back; the geometry itself is what compares equal."""
 
     kind: str
     material: str
     shape: Any
+    params: dict = field(default_factory=dict, compare=False)
 
 
-@dataclass(frozen=True)
-class RenderSettings:
+@dataclass(frozen=True, eq=False)
+class RenderSettings(_Value):
     spp: int = 16
     light_samples: int = 4
     max_depth: int = 4
@@ -184,8 +229,8 @@ class RenderSettings:
     tile: int = 32
 
 
-@dataclass(frozen=True)
-class SSSSettings:
+@dataclass(frozen=True, eq=False)
+class SSSSettings(_Value):
     enabled: bool = True
     single_scattering: bool = True
     cloud_size: int = 8192
@@ -199,11 +244,14 @@ class SSSSettings:
     bins: int = 256
     beam_points: int = 2048
     profile: str = "dipole"
+    transport: str = "diffusion"  # `sssjax.transport.TRANSPORTS`
 
 
-@dataclass(frozen=True)
-class Scene:
-    """A validated scene. Build it with `load_scene(path_or_dict)`."""
+@dataclass(frozen=True, eq=False)
+class Scene(_Value):
+    """A validated scene. Build it with `load_scene(path_or_dict)`; write it with `to_toml`.
+
+    Scenes compare by value (`path` and `source`, where it was read from, aside)."""
 
     camera: Camera
     lights: tuple
@@ -211,8 +259,8 @@ class Scene:
     shapes: tuple
     render: RenderSettings = field(default_factory=RenderSettings)
     sss: SSSSettings = field(default_factory=SSSSettings)
-    path: str | None = None
-    source: dict | None = None
+    path: str | None = field(default=None, compare=False)
+    source: dict | None = field(default=None, compare=False)
 
     @property
     def translucent_materials(self) -> list[str]:
@@ -223,6 +271,10 @@ class Scene:
     def media(self) -> dict[str, Medium]:
         """The media of the translucent materials, by name: the argument of `shade`."""
         return {n: self.materials[n].medium for n in self.translucent_materials}
+
+    def to_toml(self, path: str | Path | None = None, *, header: str | None = None) -> str:
+        """The scene as a scene file (`dump_scene`); written to `path` when given."""
+        return dump_scene(self, path, header=header)
 
     def replace(self, **kw) -> Scene:
         """A copy with some top-level fields replaced (`camera=...`, `render=...`)."""
@@ -246,6 +298,8 @@ class Scene:
             raise ctx.err("fov", f"must be between 0 and 180 degrees, got {c['fov']:g}")
         if "profile" in s:
             check_profile(s["profile"])
+        if "transport" in s:
+            TRANSPORTS.check(s["transport"])
         return dataclasses.replace(
             self,
             render=dataclasses.replace(self.render, **r),
@@ -425,7 +479,6 @@ _RENDER = {
     "background": (_rgb, lambda: np.zeros(3)),
     "tile": (_pos_int, 32),
 }
-_STRATEGIES = ("cloud", "uniform", "within", "annulus")
 _SSS = {
     "enabled": (_bool, True),
     "single_scattering": (_bool, True),
@@ -440,6 +493,7 @@ _SSS = {
     "bins": (_pos_int, 256),
     "beam_points": (_pos_int, 2048),
     "profile": (_str, "dipole"),
+    "transport": (_str, "diffusion"),
 }
 _LIGHTS = {
     "area": {
@@ -585,6 +639,27 @@ def _parse_mesh(ctx: _Ctx, f: dict, base: Path | None):
     return verts, faces
 
 
+def _parse_camera(file: str, raw: Any) -> Camera:
+    """The validated `[camera]` table."""
+    cam = _fields(_Ctx(file, "camera"), raw, _CAMERA)
+    cctx = _Ctx(file, "camera")
+    if np.linalg.norm(cam["target"] - cam["origin"]) == 0:
+        raise cctx.err("target", "must differ from 'origin'")
+    if np.linalg.norm(np.cross(cam["target"] - cam["origin"], cam["up"])) < 1e-9:
+        raise cctx.err("up", "must not be parallel to the viewing direction")
+    if not 0 < cam["fov"] < 180:
+        raise cctx.err("fov", f"must be between 0 and 180 degrees, got {cam['fov']:g}")
+    if cam["projection"] not in _PROJECTIONS:
+        hint = did_you_mean(cam["projection"], _PROJECTIONS)
+        raise cctx.err(
+            "projection",
+            f"unknown projection {cam['projection']!r}{hint} (known: {', '.join(_PROJECTIONS)})",
+        )
+    if cam["projection"] == "orthographic" and cam["view_width"] <= 0:
+        raise cctx.err("view_width", "an orthographic camera needs view_width > 0 (mm)")
+    return Camera(**cam)
+
+
 def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = None) -> Scene:
     """Load and validate a scene.
 
@@ -614,45 +689,23 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
     if "camera" not in data:
         raise SceneError(f"{file}: missing required table [camera]")
 
-    cam = _fields(_Ctx(file, "camera"), data["camera"], _CAMERA)
-    cctx = _Ctx(file, "camera")
-    if np.linalg.norm(cam["target"] - cam["origin"]) == 0:
-        raise cctx.err("target", "must differ from 'origin'")
-    if np.linalg.norm(np.cross(cam["target"] - cam["origin"], cam["up"])) < 1e-9:
-        raise cctx.err("up", "must not be parallel to the viewing direction")
-    if not 0 < cam["fov"] < 180:
-        raise cctx.err("fov", f"must be between 0 and 180 degrees, got {cam['fov']:g}")
-    if cam["projection"] not in _PROJECTIONS:
-        hint = did_you_mean(cam["projection"], _PROJECTIONS)
-        raise cctx.err(
-            "projection",
-            f"unknown projection {cam['projection']!r}{hint} (known: {', '.join(_PROJECTIONS)})",
-        )
-    if cam["projection"] == "orthographic" and cam["view_width"] <= 0:
-        raise cctx.err("view_width", "an orthographic camera needs view_width > 0 (mm)")
-    camera = Camera(**cam)
+    camera = _parse_camera(file, data["camera"])
 
     render = RenderSettings(**_fields(_Ctx(file, "render"), data.get("render", {}), _RENDER))
     sctx = _Ctx(file, "sss")
     sss = SSSSettings(**_fields(sctx, data.get("sss", {}), _SSS))
-    if sss.profile not in PROFILES:
-        hint = did_you_mean(sss.profile, PROFILES)
-        raise sctx.err(
-            "profile", f"unknown profile {sss.profile!r}{hint} (known: {', '.join(PROFILES)})"
-        )
-    if sss.strategy not in _STRATEGIES:
-        hint = did_you_mean(sss.strategy, _STRATEGIES)
-        raise sctx.err(
-            "strategy", f"unknown strategy {sss.strategy!r}{hint} (known: {', '.join(_STRATEGIES)})"
-        )
-    if sss.strategy == "within" and sss.radius <= 0:
-        raise sctx.err("radius", "strategy 'within' needs radius > 0 (mm)")
-    if sss.strategy == "annulus" and not 0 <= sss.inner < sss.outer:
-        raise sctx.err(
-            "outer",
-            f"strategy 'annulus' needs 0 <= inner < outer, got "
-            f"inner={sss.inner:g}, outer={sss.outer:g}",
-        )
+    try:
+        check_profile(sss.profile)
+    except ValueError as e:
+        raise sctx.err("profile", str(e)) from None
+    for name, registry in (("strategy", STRATEGIES), ("transport", TRANSPORTS)):
+        try:
+            registry.check(getattr(sss, name))
+        except ValueError as e:
+            raise sctx.err(name, str(e)) from None
+    problem = STRATEGIES[sss.strategy].check(sss)
+    if problem is not None:
+        raise sctx.err(*problem)
 
     raw_lights = data.get("lights", [])
     if not isinstance(raw_lights, list):
@@ -671,7 +724,8 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
             norm = np.linalg.norm(f["direction"])
             if norm == 0:
                 raise ctx.err("direction", "must be a non-zero vector")
-            f["direction"] = f["direction"] / norm
+            if abs(norm - 1.0) > 1e-15:  # unit already: kept as written (round trips)
+                f["direction"] = f["direction"] / norm
             lights.append(BeamLight(**f))
         else:
             lights.append(PointLight(**f))
@@ -710,9 +764,17 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
             hint = did_you_mean(f["material"], list(materials))
             raise ctx.err("material", f"no material named {f['material']!r}{hint} (known: {known})")
         params = {k: f[k] for k in _SHAPES[kind]}
+        written = {k: f[k] for k in ("translate", "rotate", "scale")}  # for the writer
         if kind == "quadmesh":
             verts, faces = _parse_mesh(ctx, f, base)
             params = {"vertices": verts, "faces": faces}
+            if f["file"] is not None:
+                obj = Path(f["file"])
+                written["file"] = str((base / obj if base is not None else obj).resolve())
+            else:
+                written.update(params)
+        else:
+            written.update(params)
         try:
             geom = shapes.make_shape(kind, params, f["translate"], f["rotate"], f["scale"])
             area = None
@@ -722,7 +784,7 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
             raise ctx.err("scale", str(e)) from None
         if area is not None and not area > 0:  # (a mesh of degenerate faces)
             raise ctx.err(None, f"a translucent shape needs a surface area > 0 mm^2, got {area:g}")
-        shape_list.append(ShapeSpec(kind, f["material"], geom))
+        shape_list.append(ShapeSpec(kind, f["material"], geom, written))
 
     if not shape_list:
         raise SceneError(f"{file}: [[shapes]]: the scene has no shapes (add a [[shapes]] table)")
@@ -744,3 +806,95 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
         path=None if isinstance(source, Mapping) else str(source),
         source=data,
     )
+
+
+# --- writing ---------------------------------------------------------------------------
+def _plain(v: Any) -> Any:
+    """`v` as TOML values: arrays to lists of floats, NumPy scalars to Python numbers; a
+    float32 value as its shortest decimal (`0.0021`, not `0.002099999925121665`), which
+    reads back to the same float32."""
+    if isinstance(v, np.ndarray | jax.Array):
+        a = np.asarray(v)
+        return [_plain(x) for x in a] if a.ndim else _plain(a[()])
+    if isinstance(v, np.floating):
+        return float(str(v)) if v.dtype == np.float32 else float(v)
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, list | tuple):
+        return [_plain(x) for x in v]
+    return v
+
+
+def _material_dict(m: Material) -> dict:
+    if m.type == "diffuse":
+        return {"type": "diffuse", "albedo": _plain(m.albedo)}
+    if m.type == "mirror":
+        return {"type": "mirror", "reflectance": _plain(m.reflectance)}
+    med = m.medium
+    g = np.asarray(med.g)
+    if g.ndim and not np.all(g == g.flat[0]):
+        raise ValueError(f"material {m.name!r}: a scene file holds one g, got {g.tolist()}")
+    return {
+        "type": "translucent",
+        "sigma_a": _plain(med.sigma_a),
+        "sigma_s": _plain(med.sigma_s),
+        "g": _plain(g.flat[0]),
+        "eta": _plain(np.asarray(med.eta)),
+    }
+
+
+def scene_dict(scene: Scene) -> dict:
+    """The scene file structure of `scene` (the dict `load_scene` accepts), from its
+    validated values: media as explicit coefficients (presets and `scale` applied), a quad
+    mesh read from an OBJ file by its absolute path."""
+    cam = scene.camera
+    camera = {f.name: _plain(getattr(cam, f.name)) for f in dataclasses.fields(cam)}
+    if cam.projection != "orthographic":
+        camera.pop("view_width")
+    lights = []
+    for lt in scene.lights:
+        fields = {f.name: _plain(getattr(lt, f.name)) for f in dataclasses.fields(lt)}
+        lights.append({"type": lt.kind, **fields})
+    shapes = [
+        {"type": s.kind, "material": s.material, **{k: _plain(v) for k, v in s.params.items()}}
+        for s in scene.shapes
+    ]
+    return {
+        "camera": camera,
+        "render": {
+            f.name: _plain(getattr(scene.render, f.name)) for f in dataclasses.fields(scene.render)
+        },
+        "sss": {f.name: _plain(getattr(scene.sss, f.name)) for f in dataclasses.fields(scene.sss)},
+        "lights": lights,
+        "materials": {n: _material_dict(m) for n, m in scene.materials.items()},
+        "shapes": shapes,
+    }
+
+
+# tomli-w writes an array one item per line; arrays of numbers go on one line instead
+_NUMBER = r"[-+]?(?:\d[\d_]*(?:\.\d+)?(?:[eE][-+]?\d+)?|inf|nan)"
+_NUMBER_ARRAY = re.compile(rf"\[\n((?:[ ]*{_NUMBER},\n)+)[ ]*\]")
+
+
+def _one_line(m: re.Match) -> str:
+    return "[" + ", ".join(x.strip().rstrip(",") for x in m.group(1).splitlines()) + "]"
+
+
+def dump_scene(scene: Scene, path: str | Path | None = None, *, header: str | None = None) -> str:
+    """Write `scene` as a scene file: `load_scene` of the text gives a scene equal to `scene`.
+
+    **Arguments:** `scene`; `path` to write to (never an existing file: `FileExistsError`);
+    `header`, a comment put first (default: where the scene came from; units).
+
+    **Returns:** the TOML text (lengths in mm, coefficients in mm^-1).
+    """
+    import tomli_w
+
+    if header is None:
+        header = f"sssjax scene written from {scene.path or 'a scene dict'}; units: mm, 1/mm"
+    lines = "".join(f"# {h}\n" for h in header.splitlines())
+    text = lines + "\n" + _NUMBER_ARRAY.sub(_one_line, tomli_w.dumps(scene_dict(scene)))
+    if path is not None:
+        with open(path, "x") as f:  # "x": fails rather than overwrite
+            f.write(text)
+    return text

@@ -6,7 +6,7 @@ real time:
 
 - every shape tessellated by `Shape.tessellate` of `sssjax.shapes` (the same definitions the
   tracer intersects), coloured by its material: diffuse albedo; translucent media tinted by
-  their total diffuse reflectance `dipole.Rd_total` per channel; mirrors as polished metal
+  their total diffuse reflectance `Rd_total` of the scene's `[sss] profile` per channel; mirrors as polished metal
   (a glTF material with metalness 1, reflecting viser's environment map);
 - area lights as emissive parallelograms, point and beam lights as markers;
 - the scene camera as a frustum (and the chosen render camera as a second, orange one).
@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from .scene import Camera, Scene, load_scene
+from .scene import Camera, Scene, dump_scene, load_scene
 
 __all__ = [
     "Previewer",
@@ -95,21 +95,22 @@ class PreviewMesh:
     style: str
 
 
-def material_color(material) -> np.ndarray:
+def material_color(material, profile: str = "dipole") -> np.ndarray:
     """The linear-RGB display colour of a `Material`.
 
     Diffuse: its albedo. Translucent: the medium's total diffuse reflectance
-    `Rd_total(sigma_a, sigmap_s, eta)` per channel (what a large slab of it reflects under
-    uniform light). Mirror: its reflectance.
+    `profiles.Rd_total(sigma_a, sigmap_s, eta, profile)` per channel (what a large slab of it
+    reflects under uniform light; `profile` the scene's `[sss] profile`). Mirror: its
+    reflectance.
     """
     if material.type == "diffuse":
         return np.clip(np.asarray(material.albedo, dtype=np.float64), 0.0, 1.0)
     if material.type == "mirror":
         return np.clip(np.asarray(material.reflectance, dtype=np.float64), 0.0, 1.0)
-    from .dipole import Rd_total
+    from .profiles import Rd_total
 
     m = material.medium
-    rd = Rd_total(m.sigma_a, m.sigmap_s, m.eta)
+    rd = Rd_total(m.sigma_a, m.sigmap_s, m.eta, profile)
     return np.clip(np.asarray(rd, dtype=np.float64), 0.0, 1.0)
 
 
@@ -131,7 +132,7 @@ def scene_meshes(scene: Scene, resolution: int = 48) -> list[PreviewMesh]:
         mat = scene.materials[spec.material]
         style = "mirror" if mat.type == "mirror" else "matte"
         name = f"/shapes/{i}_{spec.kind}_{spec.material}"
-        out.append(PreviewMesh(name, v, f, material_color(mat), style))
+        out.append(PreviewMesh(name, v, f, material_color(mat, scene.sss.profile), style))
     for i, light in enumerate(scene.lights):
         if type(light).__name__ != "AreaLight":
             continue
@@ -209,102 +210,16 @@ def camera_from_view(
     return Camera(**kw)
 
 
-def _toml_value(v) -> str:
-    if isinstance(v, np.ndarray):
-        v = v.tolist()
-    if isinstance(v, np.generic):
-        v = v.item()
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if not math.isfinite(v):
-            raise ValueError(f"cannot write a non-finite number {v} to TOML")
-        return repr(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n") + '"'
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
-def _toml_key(k: str) -> str:
-    ok = k and all(c.isalnum() or c in "_-" for c in k)
-    return k if ok else _toml_value(k)
-
-
-def _toml_dumps(data: dict) -> str:
-    """TOML text for the nested dict of a scene file (tables, arrays of tables, values)."""
-    lines: list[str] = []
-
-    def table(prefix: str, d: dict, array: bool) -> None:
-        scalars = {k: v for k, v in d.items() if not isinstance(v, dict) and not _is_aot(v)}
-        subs = {k: v for k, v in d.items() if isinstance(v, dict)}
-        aots = {k: v for k, v in d.items() if _is_aot(v)}
-        if prefix:
-            lines.append(f"[[{prefix}]]" if array else f"[{prefix}]")
-        for k, v in scalars.items():
-            lines.append(f"{_toml_key(k)} = {_toml_value(v)}")
-        if prefix:
-            lines.append("")
-        for k, v in subs.items():
-            table(f"{prefix}.{_toml_key(k)}" if prefix else _toml_key(k), v, False)
-        for k, v in aots.items():
-            for item in v:
-                table(f"{prefix}.{_toml_key(k)}" if prefix else _toml_key(k), item, True)
-
-    table("", data, False)
-    return "\n".join(lines).rstrip() + "\n"
-
-
-def _is_aot(v) -> bool:
-    return isinstance(v, list) and len(v) > 0 and all(isinstance(x, dict) for x in v)
-
-
 def scene_toml(scene: Scene, camera: Camera, **render: Any) -> str:
     """The scene file of `scene` with `camera` as its camera and some `[render]` / `[sss]`
     fields replaced (`spp=`, `light_samples=`, `seed=`, `sss_enabled=`).
 
-    Relative OBJ paths of quad meshes are made absolute, so the file loads from any folder.
+    Written by `dump_scene`: quad meshes read from OBJ files by their absolute paths, so the
+    file loads from any folder.
     """
-    src = dict(scene.source or {})
-    cam = {
-        "origin": [float(x) for x in camera.origin],
-        "target": [float(x) for x in camera.target],
-        "up": [float(x) for x in camera.up],
-        "fov": float(camera.fov),
-        "width": int(camera.width),
-        "height": int(camera.height),
-    }
-    if getattr(camera, "projection", "pinhole") != "pinhole":
-        cam["projection"] = camera.projection
-        cam["view_width"] = float(camera.view_width)
-    src["camera"] = cam
-    r = dict(src.get("render", {}))
-    s = dict(src.get("sss", {}))
-    for k, v in render.items():
-        if k.startswith("sss_"):
-            s[k[4:]] = v
-        else:
-            r[k] = v
-    if r:
-        src["render"] = r
-    if s:
-        src["sss"] = s
-    base = Path(scene.path).resolve().parent if scene.path else Path.cwd()
-    shapes = []
-    for raw in src.get("shapes", []):
-        raw = dict(raw)
-        if isinstance(raw.get("file"), str) and not Path(raw["file"]).is_absolute():
-            raw["file"] = str((base / raw["file"]).resolve())
-        shapes.append(raw)
-    if shapes:
-        src["shapes"] = shapes
-    order = ["camera", "render", "sss", "lights", "materials", "shapes"]
-    src = {k: src[k] for k in order if k in src} | {k: v for k, v in src.items() if k not in order}
-    head = f"# written by `sssjax preview` from {scene.path or 'a scene dict'}; units: mm\n\n"
-    return head + _toml_dumps(src)
+    out = scene.replace(camera=camera).with_settings(**render)
+    where = scene.path or "a scene dict"
+    return dump_scene(out, header=f"written by `sssjax preview` from {where}; units: mm, 1/mm")
 
 
 def save_paths(base: str | Path, protect=()) -> dict[str, Path]:
@@ -322,6 +237,10 @@ def save_paths(base: str | Path, protect=()) -> dict[str, Path]:
 
 
 # --- the server -------------------------------------------------------------------------
+# `Previewer` is over 400 lines on purpose: it is one GUI object whose public methods are its
+# buttons (`use_view`, `render`, `save`, `show_raytree`, `set_opacity`, each tested without a
+# browser) over one shared state of scene nodes and controls; split, that state would be
+# passed between classes that are only ever used together.
 class Previewer:
     """The interactive previewer of one scene.
 
@@ -682,6 +601,7 @@ class Previewer:
 
         **Returns:** the `(height, width, 3)` linear-RGB image.
         """
+        from .imageio import render_metadata
         from .render import render
 
         if not self._lock.acquire(blocking=False):
@@ -709,19 +629,7 @@ class Previewer:
             dt = time.perf_counter() - t0
             cam = scene.camera
             self._rendered = (scene, self.camera)
-            self.image_meta = {
-                "scene": self.scene.path or "<dict>",
-                "spp": spp,
-                "seeds": seeds,
-                "sss": scene.sss.enabled,
-                "light_samples": scene.render.light_samples,
-                "camera": {
-                    "origin": [float(x) for x in cam.origin],
-                    "target": [float(x) for x in cam.target],
-                    "up": [float(x) for x in cam.up],
-                    "fov": float(cam.fov),
-                },
-            }
+            self.image_meta = render_metadata(scene, spp=spp, seeds=seeds)
             self._status(f"rendered {cam.width}x{cam.height} at {spp} spp in {dt:.1f} s")
             return self.image
         finally:
@@ -838,7 +746,6 @@ class Previewer:
         **Returns:** the paths written, by extension.
         """
         from ._files import write_text
-        from ._version import __version__
         from .imageio import write_image
 
         if self.image is None:
@@ -848,7 +755,7 @@ class Previewer:
         protect = [self.scene.path] if self.scene.path else []
         paths = save_paths(path, protect)
         scene, camera = self._rendered  # what the image shows, whatever changed since
-        meta = dict(self.image_meta, version=__version__, units="radiance; lengths mm")
+        meta = self.image_meta
         text = scene_toml(
             self.scene,
             camera,

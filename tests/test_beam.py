@@ -24,7 +24,7 @@ from sssjax.camera import camera_rays, project
 from sssjax.cli import main
 from sssjax.imageio import write_image
 from sssjax.measure import find_center, fit_profile, image_to_reflectance, radial_profile
-from sssjax.trace import SceneTracer
+from sssjax.render import Renderer
 
 SLAB = Path(__file__).parent.parent / "scenes" / "measurement_slab.toml"
 
@@ -136,7 +136,7 @@ def test_beam_cloud_carries_transmitted_power(theta):
     lights = list(sc.source["lights"])
     lights[0] = {**lights[0], "direction": d, "position": [0.0, 50.0, 0.0]}
     sc = sssjax.load_scene({**sc.source, "lights": lights})
-    cloud = SceneTracer(sc).cloud(jax.random.key(1))
+    cloud = Renderer(sc).image_state(jax.random.key(1))
     eta = float(sc.media()["sample"].eta)
     Ft = float(dipole.fresnel_transmittance(math.cos(math.radians(theta)), eta))
     flux = np.asarray(cloud.beam_flux)

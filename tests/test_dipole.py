@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import central_differences
 
 from sssjax import dipole, preset, preset_names
 
@@ -165,13 +166,7 @@ def test_grazing_angle_values_and_gradients_finite():
 
 # --- derivatives ----------------------------------------------------------------------
 def _central(f, x, h):
-    x = np.asarray(x, dtype=np.float64)
-    out = []
-    for i in range(x.size):
-        e = np.zeros_like(x)
-        e.flat[i] = h * max(abs(x.flat[i]), 1e-3)
-        out.append((np.asarray(f(x + e)) - np.asarray(f(x - e))) / (2 * e.flat[i]))
-    return np.stack(out, axis=-1)
+    return central_differences(f, x, h, floor=1e-3)
 
 
 @pytest.mark.parametrize("name", ["marble", "ketchup", "skin1", "cream"])

@@ -6,22 +6,14 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from helpers import central_differences
+from helpers import small_cube as small
 
 import sssjax
 from sssjax.fit import FitError, fit
 from sssjax.scene import PointLight
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def small(preset: str):
-    scene = sssjax.load_scene(ROOT / "scenes" / "marble_cube.toml").with_settings(
-        width=40, height=40, spp=4, sss_cloud_size=2048, light_samples=2
-    )
-    mats = dict(scene.materials)
-    m = mats["marble"]
-    mats["marble"] = type(m)(m.name, m.type, medium=sssjax.preset(preset))
-    return scene.replace(materials=mats)
 
 
 @pytest.mark.slow
@@ -48,7 +40,7 @@ def test_solver_jacobian_matches_central_differences(x64):
     """The residual Jacobian the solver builds its model from (forward mode through the
     prepared terms the fit shades) against central differences of plain `shade` of the
     whole transport, in float64."""
-    from sssjax.fit import _fit_args, _Layout, _residual_fn, _trace_data
+    from sssjax.fit._problem import Layout, residual_args, residual_fn, trace_data
     from sssjax.render import as_key, renderer_for
     from sssjax.shade import shade, shade_image
 
@@ -57,22 +49,21 @@ def test_solver_jacobian_matches_central_differences(x64):
     media = scene.media()
     m0 = media["marble"]
     target = np.asarray(shade_image(tr, media)) * 1.1
-    data = _trace_data(renderer_for(scene), [None], as_key(0, scene), target, None, False, media)
-    args, order = _fit_args([data], media, 0.1, jax.numpy.float64)
+    data = trace_data(renderer_for(scene), [None], as_key(0, scene), target, None, False)
+    args, order = residual_args([data], media, 0.1, jax.numpy.float64), data.materials
     free = (("marble", "sigma_a"), ("marble", "sigma_s"))
     p0 = jax.numpy.log(jax.numpy.concatenate([m0.sigma_a, m0.sigma_s]))
-    J = np.asarray(jax.jacfwd(_residual_fn(_Layout(free, order, False, 0)))(p0, args))
-    scale = args[4]
+    J = np.asarray(jax.jacfwd(residual_fn(Layout(free, order, False, 0)))(p0, args))
+    scale = float(args.scale)
 
     def img(p):
         med = sssjax.Medium(jax.numpy.exp(p[:3]), jax.numpy.exp(p[3:]), m0.g, m0.eta)
         return np.asarray(shade(tr, {"marble": med}))[np.asarray(tr.t_rows)].reshape(-1)
 
     assert J.shape == (3 * len(tr.t_rows), 6)
+    fds = central_differences(lambda p: img(jax.numpy.asarray(p)), p0, relative=False) / scale
     for i in range(6):
-        e = np.zeros(6)
-        e[i] = 1e-6
-        fd = (img(p0 + e) - img(p0 - e)) / 2e-6 / scale
+        fd = fds[:, i]
         np.testing.assert_allclose(J[:, i], fd, rtol=1e-5, atol=1e-9 * np.abs(fd).max())
 
 
@@ -211,7 +202,7 @@ def test_g_jacobian_and_identifiability_warning(x64):
     """`g` is fitted through atanh: the solver's Jacobian column for it matches central
     differences of shade, and freeing g with sigma_s while single scattering is off is
     reported as unidentifiable, in words."""
-    from sssjax.fit import _media_of
+    from sssjax.fit._problem import Layout
     from sssjax.shade import shade
 
     scene = small("skin1").with_settings(width=12, height=12, spp=1, sss_cloud_size=256)
@@ -221,7 +212,7 @@ def test_g_jacobian_and_identifiability_warning(x64):
     free = (("marble", "sigma_s"), ("marble", "g"))
 
     def img(y):
-        (med,) = _media_of(free, ("marble",), y, (m0,))
+        (med,) = Layout(free, ("marble",), False, 0).media(y, (m0,))
         return shade(tr, {"marble": med}).reshape(-1)
 
     y0 = jax.numpy.concatenate(
@@ -229,10 +220,9 @@ def test_g_jacobian_and_identifiability_warning(x64):
     )
     J = np.asarray(jax.jacfwd(img)(y0))
     assert np.abs(J[:, 3:]).max() > 0  # g matters (single scattering is on here)
+    fds = central_differences(lambda y: img(jax.numpy.asarray(y)), y0, relative=False)
     for i in range(6):
-        e = np.zeros(6)
-        e[i] = 1e-6
-        fd = (np.asarray(img(y0 + e)) - np.asarray(img(y0 - e))) / 2e-6
+        fd = fds[:, i]
         np.testing.assert_allclose(J[:, i], fd, rtol=1e-5, atol=1e-9 * np.abs(fd).max())
 
     off = small("marble").with_settings(
@@ -269,7 +259,7 @@ def test_light_groups_add_up_to_the_scene():
     linearity in emission the parts must sum to the full scene's, sample for sample."""
     import dataclasses
 
-    from sssjax.fit import _light_groups
+    from sssjax.fit._problem import light_groups as _light_groups
     from sssjax.render import renderer_for
     from sssjax.shade import shade
 
@@ -398,7 +388,8 @@ def test_highlights_are_the_coefficient_independent_pixels_grown_by_one():
     """`_highlights` flags a pixel where the medium-independent radiance (summed over light
     groups) is more than half the target's and more than HIGHLIGHT_LEVEL times the median,
     and its 8 neighbours; nothing else."""
-    from sssjax.fit import HIGHLIGHT_LEVEL, _highlights
+    from sssjax.fit._problem import HIGHLIGHT_LEVEL
+    from sssjax.fit._problem import highlights as _highlights
 
     shape = (6, 7)
     pix = np.arange(42)
@@ -426,31 +417,31 @@ def test_default_mask_leaves_out_the_mirrored_lamp():
     """skin_sphere mirrors its area lamp in the sphere: in the target (an independent seed)
     those pixels are hundreds of times the subsurface signal and jitter at their edges; the
     default mask must leave out every one of them, and keep the sphere's body."""
-    from sssjax.fit import _left_out, _light_groups, _trace_data
+    from sssjax.fit._problem import light_groups as _light_groups
+    from sssjax.fit._problem import trace_data
     from sssjax.render import as_key, renderer_for
 
     scene = sssjax.load_scene(ROOT / "scenes" / "skin_sphere.toml").with_settings(
         width=64, height=64, spp=4, sss_cloud_size=1024, light_samples=2
     )
     target = np.asarray(sssjax.render(scene, 1))
-    d = _trace_data(
+    d = trace_data(
         renderer_for(scene),
         _light_groups(2, []),
         as_key(0, scene),
         target,
         None,
         False,
-        scene.media(),
     )
-    pix = d["all_pix"]
+    pix = d.all_pix
     lum = target.reshape(-1, 3)[pix] @ np.array([0.2126, 0.7152, 0.0722])
     lamp = pix[lum > 50 * np.median(lum)]  # the mirrored lamp (radiance 400 vs ~0.2)
     assert len(lamp) >= 3
-    assert not np.isin(lamp, d["pix"]).any()
-    assert d["tgt"].max() < 50 * np.median(lum)  # nothing of the lamp reaches the residuals
-    assert len(d["pix"]) > 0.8 * len(pix)  # the body is kept
-    left = _left_out(d, target.shape[:2])
-    assert left.reshape(-1)[lamp].all() and left.sum() == len(pix) - len(d["pix"])
+    assert not np.isin(lamp, d.pix).any()
+    assert d.target.max() < 50 * np.median(lum)  # nothing of the lamp reaches the residuals
+    assert len(d.pix) > 0.8 * len(pix)  # the body is kept
+    left = d.left_out(target.shape[:2])
+    assert left.reshape(-1)[lamp].all() and left.sum() == len(pix) - len(d.pix)
 
 
 def test_traces_average_into_one_model():
@@ -459,7 +450,10 @@ def test_traces_average_into_one_model():
     combined args equals the mean of the single-trace models at any coefficients."""
     import jax.numpy as jnp
 
-    from sssjax.fit import _fit_args, _Layout, _light_groups, _model, _trace_data
+    from sssjax.fit._problem import Layout as _Layout
+    from sssjax.fit._problem import light_groups as _light_groups
+    from sssjax.fit._problem import model as _model
+    from sssjax.fit._problem import residual_args, trace_data
     from sssjax.render import as_key, renderer_for
 
     scene = small("marble")  # the scene (and compiled tracer) of the other fit tests
@@ -467,20 +461,20 @@ def test_traces_average_into_one_model():
     media = scene.media()
     r = renderer_for(scene)
     data = [
-        _trace_data(r, _light_groups(1, []), as_key(s, scene), target, None, False, media)
+        trace_data(r, _light_groups(1, []), as_key(s, scene), target, None, False)
         for s in (1, 2, 3)
     ]
-    args, order = _fit_args(data, media, 0.1, jnp.float32)
+    args, order = residual_args(data, media, 0.1, jnp.float32), data[0].materials
     layout = _Layout((("marble", "sigma_a"), ("marble", "sigma_s")), order, False, 0)
     y = jnp.log(jnp.asarray([0.004, 0.003, 0.01, 1.5, 2.0, 3.5]))
-    combined = np.asarray(_model(layout, y, args)) * args[4]
-    common = np.intersect1d(np.intersect1d(data[0]["pix"], data[1]["pix"]), data[2]["pix"])
-    assert len(common) < len(data[0]["pix"]) + 5  # silhouette pixels may differ
+    combined = np.asarray(_model(layout, y, args)) * float(args.scale)
+    common = np.intersect1d(np.intersect1d(data[0].pix, data[1].pix), data[2].pix)
+    assert len(common) < len(data[0].pix) + 5  # silhouette pixels may differ
     singles = []
     for d in data:
-        a1, _ = _fit_args([d], media, 0.1, jnp.float32)
-        m1 = np.asarray(_model(layout, y, a1)) * a1[4]
-        pos = {p: i for i, p in enumerate(d["pix"])}
+        a1 = residual_args([d], media, 0.1, jnp.float32)
+        m1 = np.asarray(_model(layout, y, a1)) * float(a1.scale)
+        pos = {p: i for i, p in enumerate(d.pix)}
         singles.append(m1[[pos[p] for p in common]])
     scale = np.abs(combined).max()
     np.testing.assert_allclose(combined, np.mean(singles, axis=0), rtol=2e-5, atol=1e-6 * scale)

@@ -10,59 +10,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import central_differences, slab_scene
 
 import sssjax
 from sssjax import Medium, dipole, preset, profiles
 from sssjax.camera import project
 from sssjax.render import Renderer, as_key
 from sssjax.shade import shade_sss
-from sssjax.trace import R0_MM, disc_node_weights
+from sssjax.transport.gather import R0_MM, disc_node_weights, gather_cloud
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def slab_scene(
-    material: dict,
-    *,
-    width=8,
-    spp=4,
-    cloud=16384,
-    single=False,
-    size=60.0,
-    thick=20.0,
-    light_height=1000.0,
-    intensity=1e6,
-    seed=0,
-):
-    return sssjax.load_scene(
-        {
-            "camera": {
-                "origin": [0.0, 150.0, 60.0],
-                "target": [0.0, 0.0, 0.0],
-                "fov": 1.0,
-                "width": width,
-                "height": width,
-            },
-            "render": {"spp": spp, "light_samples": 1, "max_depth": 1, "seed": seed},
-            "sss": {"cloud_size": cloud, "single_scattering": single},
-            "lights": [
-                {
-                    "type": "point",
-                    "position": [0.0, light_height, 0.0],
-                    "intensity": [intensity] * 3,
-                }
-            ],
-            "materials": {"m": material},
-            "shapes": [
-                {
-                    "type": "cube",
-                    "material": "m",
-                    "size": [size, thick, size],
-                    "translate": [0.0, -thick / 2, 0.0],
-                }
-            ],
-        }
-    )
 
 
 def test_near_field_weights_integrate_the_profile_exactly(x64):
@@ -90,8 +47,8 @@ def test_gather_histogram_matches_dense_sum(x64):
     plus the flat-disc near field, for arbitrary coefficients (not those traced with)."""
     scene = slab_scene({"type": "translucent", "preset": "skin1"}, cloud=4096)
     r = Renderer(scene)
-    tr = r.tracer
-    cloud = r.cloud(as_key(0, scene))
+    tr = r.transport
+    cloud = r.image_state(as_key(0, scene))
     P, S = 6, scene.render.spp
     M = P * S
     key = jax.random.key(3)
@@ -108,12 +65,13 @@ def test_gather_histogram_matches_dense_sum(x64):
     tobj = jnp.zeros(M, jnp.int32)
     T = jnp.ones((M, 3))
     E_o = jnp.full((M, 3), 2.0)
-    hist = tr._gather_ms(cloud, have, xo, cos_o, tobj, T, E_o, P, S)
-    R = tr.tobj_rnear[0]
+    slots = dict(have=have, xo=xo, cos_o=cos_o, tobj=tobj, T_slot=T, E_o=E_o)
+    hist = gather_cloud(r.arrays, tr.nodes, cloud, slots, P, S)
+    R = tr.nodes.r_near[0]
     n_sub = tr.cloud_n // S
     Ft = float(dipole.fresnel_transmittance(0.8, 1.3))
     for med in (preset("skin1"), preset("marble"), Medium([0.3, 0.1, 0.05], [1.0, 2.0, 4.0])):
-        rd_nodes = dipole.Rd(jnp.asarray(tr.r_nodes)[:, None], med.sigma_a, med.sigmap_s, 1.3)
+        rd_nodes = dipole.Rd(jnp.asarray(tr.nodes.r_nodes)[:, None], med.sigma_a, med.sigmap_s, 1.3)
         via_hist = jnp.einsum("pbc,bc->pc", hist[0], rd_nodes)
         dense = np.zeros((P, 3))
         for s in range(M):
@@ -210,11 +168,7 @@ def test_render_gradients_match_central_differences(x64):
     g = jax.grad(loss)(p0)
     J = jax.jacfwd(loss)(p0)
     assert np.all(np.isfinite(g))
-    fd = []
-    for i in range(6):
-        h = 1e-6 * float(p0[i])
-        e = jnp.zeros(6).at[i].set(h)
-        fd.append((loss(p0 + e) - loss(p0 - e)) / (2 * h))
+    fd = central_differences(lambda p: loss(jnp.asarray(p)), p0)
     np.testing.assert_allclose(g, fd, rtol=1e-5)
     np.testing.assert_allclose(J, fd, rtol=1e-5)
 

@@ -1,0 +1,238 @@
+"""The solver loop of a fit (`solve`) and its phases (`run`): a free `eta` searched by Brent
+over re-traces, relative weights refitted at the model, `refine` with a fresh trace."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import sys
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .._progress import Progress
+from ._options import SOLVERS, WEIGHTINGS
+from ._problem import ETA_RANGE, Args, FitProblem, TraceData, residual_fn
+
+__all__ = ["Run", "Outcome", "solve", "run", "loss_at", "jacobian"]
+
+
+@dataclasses.dataclass
+class Run:
+    """One solver run: the solution `y`, its `args`, steps, the loss at the start, the
+    history (loss and values per step) and how it ended."""
+
+    y: Any
+    args: Args
+    steps: int
+    loss0: float
+    history: list
+    converged: bool
+    status: str
+    message: str
+
+
+@functools.lru_cache(maxsize=32)
+def _solver_fn(layout, scalar: bool, loss: str = "l2"):
+    residuals = residual_fn(layout, loss)
+    if scalar:
+        return lambda y, args: (0.5 * jnp.sum(residuals(y, args) ** 2), None)
+    return lambda y, args: (residuals(y, args), None)
+
+
+@eqx.filter_jit
+def _loss(residuals, y, args):
+    return 0.5 * jnp.sum(residuals(y, args) ** 2)
+
+
+@eqx.filter_jit
+def _jac_res(residuals, y, args):
+    return jax.jacfwd(residuals)(y, args), residuals(y, args)
+
+
+@eqx.filter_jit
+def _init(slv, fn, y0, args, options):
+    f_struct, aux_struct = jax.eval_shape(lambda: fn(y0, args))
+    return slv.init(fn, y0, args, options, f_struct, aux_struct, frozenset())
+
+
+@eqx.filter_jit
+def _step(slv, fn, y, args, options, state):
+    y, state, _ = slv.step(fn, y, args, options, state, frozenset())
+    done, res = slv.terminate(fn, y, args, options, state, frozenset())
+    # the solver already evaluated the loss at the point it returns (its accepted point)
+    return y, state, done, res, state.f_info.as_min()
+
+
+def loss_at(problem: FitProblem, y, args: Args) -> float:
+    """`0.5 sum r^2` of the (robust) residuals at `y`."""
+    return float(_loss(residual_fn(problem.layout, problem.options.loss), y, args))
+
+
+def jacobian(problem: FitProblem, y, args: Args):
+    """The residuals' forward-mode Jacobian at `y` and the residuals."""
+    return _jac_res(residual_fn(problem.layout, problem.options.loss), y, args)
+
+
+def _progress_line(bar, step: int, loss: float, names: list[str], vals: np.ndarray) -> None:
+    """A step on the bar (a terminal) or as a line of its own (a file or pipe)."""
+    # the material name is dropped (one material in most fits); a light keeps its prefix
+    short = [n if n.startswith("lights.") else n.split(".", 1)[-1] for n in names]
+    shown = "  ".join(f"{n}={v:.4g}" for n, v in zip(short, vals, strict=True))
+    bar.update(step, line=f"step {step:3d}  loss {loss:.6g}  {shown}", loss=loss)
+
+
+def solve(
+    problem: FitProblem, data: list[TraceData], media: dict, y0, weights_at=None, progress=None
+) -> Run:
+    """Run the solver on the traces in `data` (averaged) from `y0` (log parameters), the
+    media held at `media` (by name). With relative weighting, each pixel's weight comes
+    from the target's value, or the model's at `weights_at` when given."""
+    opts = problem.options
+    progress = problem.progress if progress is None else progress
+    dt = jnp.float32 if jnp.asarray(y0).dtype == jnp.float32 else jnp.float64
+    args = problem.args(data, media, dt, weights_at)
+    layout, names = problem.layout, problem.names
+    spec = SOLVERS[opts.solver]
+    slv = spec.make(opts.rtol, opts.atol)
+    options = dict(spec.options)
+    fn = _solver_fn(layout, spec.scalar, opts.loss)
+    residuals = residual_fn(layout, opts.loss)
+    state = _init(slv, fn, y0, args, options)
+    y = y0
+    loss0 = float(_loss(residuals, y0, args))
+    history = [{"step": 0, "loss": loss0, "params": problem.values(y0).tolist()}]
+    bar = Progress(opts.max_steps, "fitting", progress, unit="steps", every_line=True)
+    _progress_line(bar, 0, loss0, names, problem.values(y0))
+    result = optx.RESULTS.max_steps_reached
+    stalled = False
+    n = 0
+    for n in range(1, opts.max_steps + 1):
+        y, state, done, res, lval = _step(slv, fn, y, args, options, state)
+        lval = float(lval)
+        history.append({"step": n, "loss": lval, "params": problem.values(y).tolist()})
+        _progress_line(bar, n, lval, names, problem.values(y))
+        if bool(done):
+            result = res
+            break
+        # float32 shading puts a floor under the loss; optimistix's Cauchy test may keep
+        # taking rejected LM steps there. Stop once the loss has stalled after progress
+        # (or, when starting at the solution, has not moved for 8 steps).
+        window = 4 if lval < 0.5 * loss0 else 8
+        if n >= window - 1:
+            recent = [h["loss"] for h in history[-window:]]
+            if max(recent) - min(recent) <= opts.rtol * max(recent):
+                result = optx.RESULTS.successful
+                stalled = True
+                break
+    bar.close()
+    converged = result == optx.RESULTS.successful
+    if converged:
+        status = "successful"
+    else:
+        status = "max_steps_reached" if result == optx.RESULTS.max_steps_reached else "failed"
+    message = optx.RESULTS[result] if not converged else "converged"
+    if stalled:
+        message = "converged (loss unchanged to rtol over the last steps)"
+    if not converged and not message:
+        message = f"no convergence within {opts.max_steps} steps"
+    return Run(y, args, n, loss0, history, converged, status, message)
+
+
+@dataclasses.dataclass
+class Outcome:
+    """A fit's final run and what its phases found: the traces' keys and data, the `eta`
+    search (`eta`, the values tried, the loss at the start, the bounds) and `refine`'s
+    trace-noise estimate (half the difference of two single-trace solutions, log space)."""
+
+    run: Run
+    keys: list
+    data: list[TraceData]
+    eta: float | None = None
+    eta_search: list | None = None
+    eta_loss0: float | None = None
+    eta_bounds: tuple | None = None
+    trace_sd: np.ndarray | None = None
+
+
+def search_eta(problem: FitProblem, keys, y0):
+    """Minimise the profile loss `min_theta loss(theta; eta)` over the free material's
+    refractive index by bounded Brent search. `eta` bends rays, so each value tried is a
+    re-trace (same keys: the same random numbers, so the loss is smooth in eta) and a fit of
+    the other parameters from the best so far, starting with the initial `eta` itself.
+    Weights stay the target's throughout, so the losses compare. The search spans
+    `eta_init +- 0.3` (within `ETA_RANGE`). **Returns:** `(eta*, [{eta, loss, steps}], y at
+    eta*, the loss at y0 and eta_init, the bounds, the best value's (data, media))`."""
+    from scipy.optimize import minimize_scalar
+
+    name = problem.eta.name
+    eta_init = problem.start[name]
+    best = {"loss": np.inf, "y": y0}
+    tried, first = [], {}
+
+    def profile_loss(eta):
+        data, media = problem.traced(keys, float(eta))
+        run_ = solve(problem, data, media, best["y"], progress=False)
+        first.setdefault("loss0", run_.loss0)
+        loss_val = loss_at(problem, run_.y, run_.args)
+        tried.append({"eta": float(eta), "loss": loss_val, "steps": run_.steps})
+        if problem.progress:
+            print(
+                f"eta search: {name} = {eta:.5f}  loss {loss_val:.6g}  ({run_.steps} steps)",
+                file=sys.stderr,
+                flush=True,
+            )
+        if loss_val < best["loss"]:
+            best.update(loss=loss_val, y=run_.y, eta=float(eta), traced=(data, media))
+        return loss_val
+
+    lo = max(ETA_RANGE[0] + 1e-3, eta_init - 0.3)
+    hi = min(ETA_RANGE[1], eta_init + 0.3)
+    profile_loss(eta_init)  # the loss at the start, and a warm start for the search
+    minimize_scalar(profile_loss, bounds=(lo, hi), method="bounded", options={"xatol": 2e-4})
+    return best["eta"], tried, best["y"], first["loss0"], (lo, hi), best["traced"]
+
+
+def run(problem: FitProblem) -> Outcome:
+    """Every phase of a fit: trace (searching a free `eta`), solve, refit relative weights at
+    the model, and `refine` (a fresh trace fitted alone from the solution, then the average
+    of both)."""
+    keys = problem.trace_keys()
+    y0 = problem.y0
+    out = Outcome(run=None, keys=keys, data=[])
+    if problem.eta is not None:
+        eta, tried, y_start, loss0, bounds, (data, media) = search_eta(problem, keys, y0)
+        out.eta, out.eta_search, out.eta_loss0, out.eta_bounds = eta, tried, loss0, bounds
+    else:
+        (data, media), y_start = problem.traced(keys), y0
+    out.data = data
+    r = solve(problem, data, media, y_start)
+    refit = WEIGHTINGS[problem.options.weighting].refit
+    if refit:
+        # weights from the target's own noisy values favour pixels whose noise happens to be
+        # low and so bias the fit (by about the pixels' relative variance); refit with
+        # weights from the fitted model instead, which does not share the target's noise
+        r = solve(problem, data, media, r.y, weights_at=r.y)
+    if problem.options.refine:
+        k_fresh = jax.random.fold_in(problem.key, 99_991)
+        fresh = problem.traced([k_fresh], out.eta)[0][0]
+        if problem.progress:
+            print("refine: fit a fresh trace from the solution", file=sys.stderr, flush=True)
+        w_at = r.y if refit else None
+        other = solve(problem, [fresh], media, r.y, weights_at=w_at)
+        if problem.progress:
+            print("refine: fit the average of both traces", file=sys.stderr, flush=True)
+        joint = solve(problem, data + [fresh], media, 0.5 * (r.y + other.y), weights_at=w_at)
+        out.keys = keys + [k_fresh]
+        # two single-trace solutions differ by trace noise alone (same target): their
+        # half-difference estimates the trace-noise error of the joint (mean) solution
+        out.trace_sd = 0.5 * np.abs(np.asarray(r.y - other.y, dtype=np.float64))
+        joint.history = r.history + other.history + joint.history
+        joint.steps = r.steps + other.steps + joint.steps
+        r = joint
+    out.run = r
+    return out
