@@ -42,18 +42,35 @@ def scene_dict(kind: str, size: int, spp: int) -> dict:
     # (sssjax meets the floor where a face touches it; Mitsuba's result is not specified)
     gap = 0.1
     shapes = {
-        "cube": ("marble", {"type": "cube", "size": 20.0, "translate": [0, 10 + gap, 0], "rotate": [0, 35, 0]}),
-        "cylinder": ("skimmilk", {"type": "cylinder", "radius": 10.0, "height": 24.0, "translate": [0, gap, 0]}),
+        "cube": (
+            "marble",
+            {"type": "cube", "size": 20.0, "translate": [0, 10 + gap, 0], "rotate": [0, 35, 0]},
+        ),
+        "cylinder": (
+            "skimmilk",
+            {"type": "cylinder", "radius": 10.0, "height": 24.0, "translate": [0, gap, 0]},
+        ),
         "sphere": ("ketchup", {"type": "sphere", "radius": 10.0, "translate": [0, 10 + gap, 0]}),
     }
     preset, shape = shapes[kind]
     return {
-        "camera": {"origin": [0, 45, 75], "target": [0, 9, 0], "fov": 32, "width": size, "height": size},
+        "camera": {
+            "origin": [0, 45, 75],
+            "target": [0, 9, 0],
+            "fov": 32,
+            "width": size,
+            "height": size,
+        },
         "render": {"spp": spp, "background": 0.0},
         "sss": {"transport": "volumetric"},
         "lights": [
-            {"type": "area", "corner": [-25, 70, -15], "edge_u": [50, 0, 0], "edge_v": [0, 0, 30],
-             "radiance": 6.0}
+            {
+                "type": "area",
+                "corner": [-25, 70, -15],
+                "edge_u": [50, 0, 0],
+                "edge_v": [0, 0, 30],
+                "radiance": 6.0,
+            }
         ],
         "materials": {
             "obj": {"type": "translucent", "preset": preset, "eta": 1.3},
@@ -79,9 +96,16 @@ def mitsuba_scene(scene: sssjax.Scene, channel: int, spp: int):
             "type": "perspective",
             "fov": cam.fov,
             "fov_axis": "y",
-            "to_world": T().look_at(origin=list(cam.origin), target=list(cam.target), up=list(cam.up)),
-            "film": {"type": "hdrfilm", "width": cam.width, "height": cam.height,
-                     "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+            "to_world": T().look_at(
+                origin=list(cam.origin), target=list(cam.target), up=list(cam.up)
+            ),
+            "film": {
+                "type": "hdrfilm",
+                "width": cam.width,
+                "height": cam.height,
+                "rfilter": {"type": "box"},
+                "pixel_format": "rgb",
+            },
             "sampler": {"type": "independent", "sample_count": spp},
         },
         "medium": {
@@ -128,7 +152,12 @@ def mitsuba_scene(scene: sssjax.Scene, channel: int, spp: int):
         else:
             raise ValueError(f"no Mitsuba translation for {s.kind}")
         for j, (kind, L) in enumerate(parts):
-            d[f"obj{i}_{j}"] = {"type": kind, "to_world": T((w @ L).tolist()), "bsdf": bsdf, "interior": interior}
+            d[f"obj{i}_{j}"] = {
+                "type": kind,
+                "to_world": T((w @ L).tolist()),
+                "bsdf": bsdf,
+                "interior": interior,
+            }
     for k, lt in enumerate(scene.lights):
         eu, ev = np.asarray(lt.edge_u) / 2, np.asarray(lt.edge_v) / 2
         M = np.eye(4)
@@ -177,7 +206,9 @@ def regions(scene: sssjax.Scene) -> dict[str, np.ndarray]:
     o, d = camera_rays(cam, jnp.arange(n, dtype=jnp.int32), jnp.full((n, 1, 2), 0.5))
     t, _, sid = intersect_all([s.shape for s in scene.shapes], o[:, 0], d[:, 0])
     sid = np.asarray(sid).reshape(cam.height, cam.width)
-    x = np.asarray(o[:, 0] + jnp.where(jnp.isfinite(t), t, 0)[:, None] * d[:, 0]).reshape(cam.height, cam.width, 3)
+    x = np.asarray(o[:, 0] + jnp.where(jnp.isfinite(t), t, 0)[:, None] * d[:, 0]).reshape(
+        cam.height, cam.width, 3
+    )
     obj = sid == 0
     near = (sid == 1) & (np.hypot(x[..., 0], x[..., 2]) < 40.0)
     return {"object": obj, "floor near": near}
@@ -201,22 +232,32 @@ def main() -> None:
         M = [render_mitsuba(scene, spp_m, s) for s in range(a.seeds)]
         ims, imm = np.stack([x[0] for x in S]), np.stack([x[0] for x in M])
         ts, tm = np.mean([x[1] for x in S]), np.mean([x[1] for x in M])
-        print(f"{kind}: {size}x{size}; sssjax {spp_s} spp {ts:.1f} s / image, Mitsuba {spp_m} spp {tm:.1f} s / image")
+        print(
+            f"{kind}: {size}x{size}; sssjax {spp_s} spp {ts:.1f} s / image, Mitsuba {spp_m} spp {tm:.1f} s / image"
+        )
         for name, m in masks.items():
             vs, vm = ims[:, m].mean(1), imm[:, m].mean(1)  # (seeds, 3)
             ratio = vs.mean(0) / vm.mean(0)
             se = ratio * np.sqrt(
-                vs.var(0, ddof=1) / a.seeds / vs.mean(0) ** 2 + vm.var(0, ddof=1) / a.seeds / vm.mean(0) ** 2
+                vs.var(0, ddof=1) / a.seeds / vs.mean(0) ** 2
+                + vm.var(0, ddof=1) / a.seeds / vm.mean(0) ** 2
             )
-            print(f"  {name:>10}: sssjax / Mitsuba = " + "  ".join(f"{r:.3f}+-{e:.3f}" for r, e in zip(ratio, se, strict=True)))
+            print(
+                f"  {name:>10}: sssjax / Mitsuba = "
+                + "  ".join(f"{r:.3f}+-{e:.3f}" for r, e in zip(ratio, se, strict=True))
+            )
         obj = masks["object"]
         noise_s = ims[:, obj].std(0).mean()  # per-pixel standard deviation across seeds
         noise_m = imm[:, obj].std(0).mean()
         # time for the same noise: t ~ 1 / noise^2
         eq = (ts * noise_s**2) / (tm * noise_m**2)
-        print(f"  noise on the object: sssjax {noise_s:.4f}, Mitsuba {noise_m:.4f};"
-              f" time to equal noise sssjax / Mitsuba = {eq:.2f}")
-        sssjax.imageio.write_image(out / f"{kind}.png", np.concatenate([ims.mean(0), imm.mean(0)], axis=1))
+        print(
+            f"  noise on the object: sssjax {noise_s:.4f}, Mitsuba {noise_m:.4f};"
+            f" time to equal noise sssjax / Mitsuba = {eq:.2f}"
+        )
+        sssjax.imageio.write_image(
+            out / f"{kind}.png", np.concatenate([ims.mean(0), imm.mean(0)], axis=1)
+        )
 
 
 if __name__ == "__main__":

@@ -1,12 +1,14 @@
-"""Light sources as arrays: rectangular (parallelogram) area lights, point lights and
-collimated beams.
+"""Light sources as arrays: rectangular (parallelogram) area lights, point lights,
+collimated beams and a constant environment.
 
 Radiometry: an area light emits constant radiance `L_e` (W mm^-2 sr^-1) from its front side
 (along `edge_u x edge_v`); a point light has intensity `I` (W sr^-1); a beam of radius `R`
 carries power `P` (W) along its axis, so a surface inside it receives `P cos / (pi R^2)`.
 Irradiance at a point is estimated by stratified (jittered n x n) sampling of each area
 light with shadow rays. Beams are not seen by camera rays (a collimated beam has no
-radiance in any finite solid angle).
+radiance in any finite solid angle). An environment light is a constant radiance `L_env`
+arriving along every ray that escapes the scene; its irradiance `int L_env V cos dw` is
+estimated with cosine-weighted directions (the same stratified samples) and shadow rays.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .scene import AreaLight, BeamLight, PointLight
+from .scene import AreaLight, BeamLight, EnvironmentLight, PointLight
 
 
 class LightArrays(eqx.Module):
@@ -36,12 +38,14 @@ class LightArrays(eqx.Module):
     beam_dir: Float[Array, "Lb 3"]
     beam_radius: Float[Array, " Lb"]
     beam_power: Float[Array, "Lb 3"]
+    env_radiance: Float[Array, "Le 3"]
 
     @classmethod
     def from_scene(cls, lights) -> LightArrays:
         area = [l for l in lights if isinstance(l, AreaLight)]
         point = [l for l in lights if isinstance(l, PointLight)]
         beam = [l for l in lights if isinstance(l, BeamLight)]
+        env = [l for l in lights if isinstance(l, EnvironmentLight)]
 
         def stack(items, attr):
             if not items:
@@ -61,6 +65,7 @@ class LightArrays(eqx.Module):
             beam_dir=stack(beam, "direction"),
             beam_radius=jnp.asarray([l.radius for l in beam], dtype=float).reshape(-1),
             beam_power=stack(beam, "power"),
+            env_radiance=stack(env, "radiance"),
         )
 
     def scaled(self, gain: Array, kinds: tuple[str, ...]) -> LightArrays:
@@ -72,12 +77,13 @@ class LightArrays(eqx.Module):
             return gain[np.array([i for i, k in enumerate(kinds) if k == kind], dtype=int)]
 
         return eqx.tree_at(
-            lambda la: (la.radiance, la.intensity, la.beam_power),
+            lambda la: (la.radiance, la.intensity, la.beam_power, la.env_radiance),
             self,
             (
                 self.radiance * of("area")[:, None],
                 self.intensity * of("point")[:, None],
                 self.beam_power * of("beam")[:, None],
+                self.env_radiance * of("environment")[:, None],
             ),
         )
 
@@ -92,6 +98,15 @@ class LightArrays(eqx.Module):
     @property
     def n_beam(self) -> int:
         return self.beam_origin.shape[0]
+
+    @property
+    def n_env(self) -> int:
+        return self.env_radiance.shape[0]
+
+    @property
+    def environment(self) -> Float[Array, " 3"]:
+        """The environment's radiance (all environment lights together; 0 without one)."""
+        return jnp.sum(self.env_radiance, axis=0)
 
     def beam_frame(self, k: int) -> tuple[Array, Array]:
         """Two unit vectors spanning the cross-section of beam `k`."""
@@ -179,7 +194,33 @@ def direct_irradiance(
         f = transmit(cos_x) if transmit is not None else 1.0
         g = jnp.where((cos_x > 0) & vis, f * cos_x / dist2, 0.0)
         E = E + lights.intensity[k] * g[..., None]
+    if lights.n_env:
+        # cosine-weighted directions from the same strata: E = pi L_env mean(V f)
+        r = jnp.sqrt(u_light[..., 0])
+        phi = 2.0 * jnp.pi * u_light[..., 1]
+        t1, t2 = _frame(n)
+        w = (
+            (r * jnp.cos(phi))[..., None] * t1[..., None, :]
+            + (r * jnp.sin(phi))[..., None] * t2[..., None, :]
+            + jnp.sqrt(jnp.maximum(1.0 - r * r, 0.0))[..., None] * n[..., None, :]
+        )
+        cos_x = jnp.sum(w * n[..., None, :], axis=-1)
+        xo = jnp.broadcast_to(x[..., None, :], w.shape)
+        vis = ~occluded(xo + 1e-3 * n[..., None, :], w, jnp.full(cos_x.shape, jnp.inf))
+        f = transmit(cos_x) if transmit is not None else 1.0
+        g = jnp.where(vis & (cos_x > 0), f * jnp.ones_like(cos_x), 0.0)
+        E = E + jnp.pi * lights.environment * jnp.mean(g, axis=-1)[..., None]
     return E
+
+
+def _frame(n):
+    """Two unit tangents orthogonal to unit normals `n` (Duff et al. 2017)."""
+    sign = jnp.where(n[..., 2] >= 0, 1.0, -1.0).astype(n.dtype)
+    a = -1.0 / (sign + n[..., 2])
+    b = n[..., 0] * n[..., 1] * a
+    t1 = jnp.stack([1.0 + sign * n[..., 0] ** 2 * a, sign * b, -sign * n[..., 0]], axis=-1)
+    t2 = jnp.stack([b, sign + n[..., 1] ** 2 * a, -n[..., 1]], axis=-1)
+    return t1, t2
 
 
 def beam_irradiance(

@@ -75,7 +75,8 @@ class Renderer:
         self.sharding = NamedSharding(self.mesh, PartitionSpec("tiles"))
         cam = scene.camera
         self.n_pixels = cam.width * cam.height
-        self.block = min(scene.render.tile**2, self.n_pixels)
+        # pixels per block: a tile, or what the transport asks for (walks need wide blocks)
+        self.block = min(self.transport.block_pixels(scene.render.tile), self.n_pixels)
         self.n_blocks = -(-self.n_pixels // self.block)
         tm = self.transport
         tiles, whole = PartitionSpec("tiles"), PartitionSpec()

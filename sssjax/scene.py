@@ -195,6 +195,17 @@ class BeamLight(_Value):
 
 
 @dataclass(frozen=True, eq=False)
+class EnvironmentLight(_Value):
+    """A constant environment: RGB `radiance` (W mm^-2 sr^-1) arriving from every direction
+    that escapes the scene (seen by rays like the background, and lighting every surface)."""
+
+    kind: ClassVar[str] = "environment"
+    emission: ClassVar[str] = "radiance"
+
+    radiance: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
 class Material(_Value):
     """`type` is `diffuse` (uses `albedo`), `mirror` (`reflectance`) or `translucent` (`medium`)."""
 
@@ -245,6 +256,9 @@ class SSSSettings(_Value):
     beam_points: int = 2048
     profile: str = "dipole"
     transport: str = "diffusion"  # `sssjax.transport.TRANSPORTS`
+    records: int = 4  # volumetric: re-weightable records kept per walker
+    spectral: str = "mis"  # volumetric: one walker for all channels (MIS) or "separate"
+    next_event: bool = True  # volumetric: next-event estimation inside media
 
 
 @dataclass(frozen=True, eq=False)
@@ -494,6 +508,9 @@ _SSS = {
     "beam_points": (_pos_int, 2048),
     "profile": (_str, "dipole"),
     "transport": (_str, "diffusion"),
+    "records": (_pos_int, 4),
+    "spectral": (_str, "mis"),
+    "next_event": (_bool, True),
 }
 _LIGHTS = {
     "area": {
@@ -515,6 +532,7 @@ _LIGHTS = {
         "radius": (_pos, REQUIRED),
         "power": (_rgb, REQUIRED),
     },
+    "environment": {"type": (_str, REQUIRED), "radiance": (_rgb, REQUIRED)},
 }
 _MATERIALS = {
     "diffuse": {"type": (_str, REQUIRED), "albedo": (_rgb, REQUIRED)},
@@ -703,6 +721,11 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
             registry.check(getattr(sss, name))
         except ValueError as e:
             raise sctx.err(name, str(e)) from None
+    if sss.spectral not in ("mis", "separate"):
+        hint = did_you_mean(sss.spectral, ["mis", "separate"])
+        raise sctx.err(
+            "spectral", f"unknown spectral mode {sss.spectral!r}{hint} (known: mis, separate)"
+        )
     problem = STRATEGIES[sss.strategy].check(sss)
     if problem is not None:
         raise sctx.err(*problem)
@@ -727,6 +750,8 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
             if abs(norm - 1.0) > 1e-15:  # unit already: kept as written (round trips)
                 f["direction"] = f["direction"] / norm
             lights.append(BeamLight(**f))
+        elif kind == "environment":
+            lights.append(EnvironmentLight(**f))
         else:
             lights.append(PointLight(**f))
 

@@ -147,6 +147,10 @@ class TransportMethod(abc.ABC):
     def empty_terms(self) -> Terms:
         """Terms of no rows (a trace in which no pixel depends on the media)."""
 
+    def block_pixels(self, tile: int) -> int:
+        """Pixels traced together (default: one `tile x tile` tile, `[render] tile`)."""
+        return tile * tile
+
     def image_state(self, arrays, key: PRNGKeyArray) -> Any:
         """State shared by every block of one image (default: none)."""
         return None

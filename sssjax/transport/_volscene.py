@@ -141,31 +141,29 @@ class VolScene(eqx.Module):
     single: int | None = eqx.field(static=True)  # the index of the only translucent shape
 
     @classmethod
-    def build(
-        cls, scene, lights: LightArrays | None = None, env: np.ndarray | None = None
-    ) -> VolScene:
-        """From a `Scene` (the lights' emission as given, or `lights` when passed)."""
-        mats = scene.materials
-        tnames = list(scene.translucent_materials)
-        kinds = {"diffuse": DIFFUSE, "mirror": MIRROR, "translucent": TRANSLUCENT}
-        S = len(scene.shapes)
-        kind = np.array([kinds[mats[s.material].type] for s in scene.shapes], np.int32)
-        albedo = np.zeros((S, 3))
-        refl = np.zeros((S, 3))
-        eta = np.ones(S)
+    def build(cls, scene) -> VolScene:
+        """From a `Scene` (its eta, media and lights as written)."""
+        from .._arrays import SceneArrays
+
+        return cls.from_arrays(SceneArrays.from_scene(scene))
+
+    @classmethod
+    def from_arrays(cls, arrays) -> VolScene:
+        """From `SceneArrays`: the geometry (static: the boundary of every translucent
+        shape for refracted next-event estimation, on the host) and the arrays a fit
+        changes (`eta`, the lights with their gains), which may be traced values."""
+        shapes = arrays.shapes
+        S = len(shapes)
+        kind = np.array([int(k) for k in arrays.kind], np.int32)
         mat = np.full(S, -1, np.int32)
+        mat[list(arrays.tobj_shape)] = arrays.tobj_mat
         bounds = []
         uncovered = []
-        for i, s in enumerate(scene.shapes):
-            m = mats[s.material]
-            albedo[i] = m.albedo
-            refl[i] = m.reflectance
-            if m.type == "translucent":
-                eta[i] = float(m.medium.eta)
-                mat[i] = tnames.index(s.material)
-                b = _boundary(s.shape)
+        for i, shp in enumerate(shapes):
+            if mat[i] >= 0:
+                b = _boundary(shp)
                 if not b[2]:
-                    uncovered.append(f"shape {i} ({s.kind})")
+                    uncovered.append(f"shape {i} ({type(shp).__name__.lower()})")
             else:
                 b = ([], None, False, True)
             bounds.append(b)
@@ -184,25 +182,14 @@ class VolScene(eqx.Module):
             if sphere is not None:
                 sph[i], sc[i], sr[i] = True, sphere[0], sphere[1]
             cov[i], cvx[i] = covered, convex
-        la = LightArrays.from_scene(scene.lights) if lights is None else lights
-        power = np.concatenate(
-            [
-                np.pi * np.asarray(la.area) * np.mean(np.asarray(la.radiance), axis=-1),
-                4.0 * np.pi * np.mean(np.asarray(la.intensity), axis=-1),
-                np.mean(np.asarray(la.beam_power), axis=-1),
-            ]
-        )
-        power = np.maximum(power, 0.0)
-        cdf = np.cumsum(power) / power.sum() if power.sum() > 0 else np.zeros(len(power))
-        bg = np.asarray(scene.render.background, np.float64)
-        env_rgb = bg + (np.zeros(3) if env is None else np.asarray(env, np.float64))
+        la = arrays.lights
         f = jnp.asarray
         return cls(
-            shapes=tuple(s.shape for s in scene.shapes),
+            shapes=tuple(shapes),
             kind=f(kind),
-            albedo=f(albedo, dtype=float),
-            reflectance=f(refl, dtype=float),
-            eta=f(eta, dtype=float),
+            albedo=arrays.albedo,
+            reflectance=arrays.reflectance,
+            eta=arrays.eta,
             mat=f(mat),
             face_c=f(fc, dtype=float),
             face_n=f(fn, dtype=float),
@@ -216,15 +203,43 @@ class VolScene(eqx.Module):
             covered_all=f(cov),
             convex=f(cvx),
             lights=la,
-            light_cdf=f(cdf, dtype=float),
-            env=f(env_rgb, dtype=float),
-            n_materials=len(tnames),
+            light_cdf=light_cdf(la),
+            env=jnp.asarray(arrays.render.background, dtype=float) + la.environment,
+            n_materials=len(arrays.materials),
             uncovered=tuple(uncovered),
             has_sphere=bool(sph.any()),
             all_convex=bool(np.all(cvx[mat >= 0])),
             single=int(np.flatnonzero(mat >= 0)[0]) if np.sum(mat >= 0) == 1 else None,
         )
 
-    def with_eta(self, eta) -> VolScene:
-        """The same scene with the per-shape relative index `eta (S,)`."""
-        return eqx.tree_at(lambda v: v.eta, self, jnp.asarray(eta, dtype=self.eta.dtype))
+    def with_arrays(self, arrays) -> VolScene:
+        """The same geometry with `arrays`' refractive indices and lights (traced values
+        welcome: nothing static changes)."""
+        la = arrays.lights
+        return eqx.tree_at(
+            lambda v: (v.eta, v.lights, v.light_cdf, v.env, v.albedo, v.reflectance),
+            self,
+            (
+                arrays.eta,
+                la,
+                light_cdf(la),
+                jnp.asarray(arrays.render.background, dtype=float) + la.environment,
+                arrays.albedo,
+                arrays.reflectance,
+            ),
+        )
+
+
+def light_cdf(la: LightArrays):
+    """Cumulative probabilities of choosing each light for next-event estimation, in
+    proportion to its power (area, point, beam lights in that order; all 0 when dark)."""
+    power = jnp.concatenate(
+        [
+            jnp.pi * la.area * jnp.mean(la.radiance, axis=-1),
+            4.0 * jnp.pi * jnp.mean(la.intensity, axis=-1),
+            jnp.mean(la.beam_power, axis=-1),
+        ]
+    )
+    power = jnp.maximum(power, 0.0)
+    total = jnp.sum(power)
+    return jnp.where(total > 0, jnp.cumsum(power) / jnp.where(total > 0, total, 1.0), 0.0)

@@ -131,7 +131,8 @@ def _bounce(arrays: SceneArrays, lights, depth, st, ul, subsurface: bool, rec: R
     continuation (mirror, or the Fresnel reflection of a translucent boundary)."""
     o, d, T, alive, base = st["o"], st["d"], st["T"], st["alive"], st["base"]
     slot = {f: st[f] for f in SLOT_FIELDS}
-    bg = jnp.asarray(arrays.render.background, dtype=float)
+    # rays that escape see the background and the environment light
+    bg = jnp.asarray(arrays.render.background, dtype=float) + lights.environment
     kind = jnp.asarray(arrays.kind, dtype=jnp.int32)
     tobj_of = np.full(len(arrays.kind), -1, np.int32)  # translucent object index per shape
     tobj_of[list(arrays.tobj_shape)] = np.arange(arrays.n_objects)

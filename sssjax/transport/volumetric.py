@@ -50,6 +50,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from .._numerics import safe_div, safe_sqrt
@@ -57,6 +58,7 @@ from ..camera import camera_rays
 from ..dipole import fresnel_reflectance, hg_phase
 from ..sampling import stratified_2d
 from ..shapes import intersect_all
+from ._base import Block, Prepared, Terms, TransportMethod
 from ._connect import (
     exit_map_G,
     in_face,
@@ -65,10 +67,13 @@ from ._connect import (
     sphere_connections,
     sphere_exit,
 )
+from ._record import NO_RECORD, Recorder
 from ._volscene import DIFFUSE, MIRROR, TRANSLUCENT, VolScene
 
 __all__ = [
+    "Volumetric",
     "VolumetricTerms",
+    "VolumetricShading",
     "Proposal",
     "trace_block",
     "shade_terms",
@@ -84,6 +89,7 @@ _NU = 16  # uniform numbers per walker and event
 _LEDGER = ("escaped", "emitter", "absorbed", "roulette", "cut")
 _WIDTHS = (1, 8, 64)  # walkers are packed into 1/k of the block as they end
 _PHASE = 8  # events between re-packings
+_BLOCK_WALKERS = 1 << 15  # walkers traced together by the renderer
 
 
 class Proposal(eqx.Module):
@@ -105,9 +111,10 @@ class Proposal(eqx.Module):
         return cls(ss, st, g)
 
 
-class VolumetricTerms(eqx.Module):
+class VolumetricTerms(Terms):
     """Re-weightable records of a block of pixels (`P` pixels, `R` records each, `Mt`
-    materials): radiance `sum_r w_rc f_r(sigma_c)` in channel `c`."""
+    materials): radiance `sum_r w_rc f_r(sigma_c)` in channel `c`. Their `prepare` has
+    nothing to fold in (`eta` is geometry: the walks were traced with it)."""
 
     w: Float[Array, "3 P R"]  # the record's share of the pixel, per channel, at the proposal
     n: Float[Array, "P R Mt"]  # scattering events in each medium
@@ -120,14 +127,31 @@ class VolumetricTerms(eqx.Module):
             self.w[:, rows], self.n[rows], self.L[rows], self.sigma_s0, self.sigma_t0
         )
 
-    @staticmethod
-    def mean(parts) -> VolumetricTerms:
+    @classmethod
+    def concat(cls, parts) -> VolumetricTerms:
+        host = all(isinstance(p.w, np.ndarray) for p in parts)
+        cat = np.concatenate if host else jnp.concatenate
+        p0 = parts[0]
+        return VolumetricTerms(
+            cat([p.w for p in parts], axis=1),
+            cat([p.n for p in parts], axis=0),
+            cat([p.L for p in parts], axis=0),
+            p0.sigma_s0,
+            p0.sigma_t0,
+        )
+
+    def prepare(self, etas) -> VolumetricShading:
+        return VolumetricShading(self.w, self.n, self.L, self.sigma_s0, self.sigma_t0)
+
+    @classmethod
+    def mean(cls, parts) -> VolumetricTerms:
         """Independent traces of the same pixels (same proposal) as one trace with all their
         records, each at `1 / len(parts)` of its weight."""
         k = len(parts)
         if k == 1:
             return parts[0]
-        cat = jnp.concatenate
+        host = all(isinstance(p.w, np.ndarray) for p in parts)
+        cat = np.concatenate if host else jnp.concatenate
         return VolumetricTerms(
             cat([p.w for p in parts], axis=2) / k,
             cat([p.n for p in parts], axis=1),
@@ -135,6 +159,21 @@ class VolumetricTerms(eqx.Module):
             parts[0].sigma_s0,
             parts[0].sigma_t0,
         )
+
+
+class VolumetricShading(Prepared):
+    """Volumetric records ready to shade (`VolumetricTerms.prepare`)."""
+
+    w: Float[Array, "3 P R"]
+    n: Float[Array, "P R Mt"]
+    L: Float[Array, "P R Mt"]
+    sigma_s0: Float[Array, "Mt 3"]
+    sigma_t0: Float[Array, "Mt 3"]
+
+    def shade(self, media, *, multiple: bool = True, single: bool = True, **_) -> Array:
+        """The exact re-weighting to `media`; `single` / `multiple`: the light scattered
+        once / more than once in the media (by the records' event counts)."""
+        return shade_terms(self, media, multiple=multiple, single=single)
 
 
 class WalkStats(eqx.Module):
@@ -173,13 +212,20 @@ def _log_factors(terms: VolumetricTerms, media) -> Float[Array, "3 P R"]:
     return jnp.sum(nl - dt * L, axis=-1)
 
 
-def shade_terms(terms: VolumetricTerms, media) -> Float[Array, "P 3"]:
+def shade_terms(terms, media, *, multiple: bool = True, single: bool = True) -> Array:
     """Radiance `(P, 3)` of the records for `media` (a sequence, one `Medium` per material,
-    coefficients in mm^-1): the exact re-weighting of the walks to these coefficients."""
+    coefficients in mm^-1): the exact re-weighting of the walks to these coefficients.
+    `single` / `multiple` keep the light scattered once / more than once (paths with no
+    scattering event, light only attenuated, count with neither switched off)."""
     if terms.n.shape[-1] == 0:
         return jnp.zeros(terms.w.shape[1:2] + (3,), terms.w.dtype)
     f = jnp.exp(_log_factors(terms, media))  # (3, P, R)
-    return jnp.sum(terms.w * f, axis=-1).T
+    w = terms.w
+    if not (single and multiple):
+        order = jnp.sum(terms.n, axis=-1)[None]
+        keep = (order == 0) | ((order == 1) & single) | ((order >= 2) & multiple)
+        w = jnp.where(keep, w, 0.0)
+    return jnp.sum(w * f, axis=-1).T
 
 
 def effective_sample_size(terms: VolumetricTerms, media) -> tuple[Array, Array]:
@@ -938,3 +984,58 @@ def trace_block(
         **{k: jnp.sum(st["ledger"][:, i]) for i, k in enumerate(_LEDGER)},
     )
     return base, terms, stats
+
+
+class Volumetric(TransportMethod):
+    """The volumetric transport of one scene: one phase (every pixel's walks, whose
+    records exist for the pixels some path of which entered a medium). Static
+    configuration: the boundary geometry for refracted next-event estimation, `records` per
+    walker, the spectral mode and spp; the proposal is the arrays' media
+    (`SceneArrays.with_media`), their `eta` and lights may be traced values."""
+
+    name = "volumetric"
+    two_phase = False
+
+    def __init__(self, arrays):
+        self.vs = VolScene.from_arrays(arrays)
+        sss = arrays.sss
+        self.records = sss.records
+        self.spectral = sss.spectral
+        self.nee = sss.next_event
+        self.spp = arrays.render.spp
+        self.materials = arrays.materials
+        self.enabled = sss.enabled and arrays.n_objects > 0
+
+    @property
+    def media_dependent(self) -> bool:
+        return self.enabled
+
+    def block_pixels(self, tile: int) -> int:
+        """About `_BLOCK_WALKERS` walkers per block, in whole tiles: walks end at very
+        different times, and a wide block keeps the packed tail of long walks busy."""
+        per_px = self.spp * (3 if self.spectral == "separate" else 1)
+        tiles = max(1, _BLOCK_WALKERS // (per_px * tile * tile))
+        return tiles * tile * tile
+
+    def empty_terms(self) -> VolumetricTerms:
+        Mt = len(self.materials)
+        R = self.spp * self.records * (3 if self.spectral == "separate" else 1)
+        z = jnp.zeros((0, R, Mt))
+        return VolumetricTerms(jnp.zeros((3, 0, R)), z, z, jnp.zeros((Mt, 3)), jnp.zeros((Mt, 3)))
+
+    def trace_block(self, arrays, state, pixels, key, rec: Recorder = NO_RECORD) -> Block:
+        vs = self.vs.with_arrays(arrays)
+        prop = Proposal.from_media(arrays.media)
+        base, terms, _ = trace_block(
+            vs,
+            prop,
+            arrays.camera,
+            pixels,
+            key,
+            self.spp,
+            K=self.records,
+            nee=self.nee,
+            spectral=self.spectral,
+        )
+        needs = jnp.any(terms.w > 0, axis=(0, 2))
+        return Block(base, needs, terms)
