@@ -45,6 +45,8 @@ _SOLVER = {
     "rel_floor": _pos,
     "traces": _pos_int,
     "refine": _bool,
+    "proposal_rounds": _nonneg_int,
+    "proposal_tol": _pos,
 }
 _SYNTHETIC = {"seed": _nonneg_int}
 

@@ -127,6 +127,8 @@ def _cmd_render(args: argparse.Namespace) -> int:
         kw["height"] = args.height
     if args.no_sss:
         kw["sss_enabled"] = False
+    if args.transport is not None:
+        kw["sss_transport"] = args.transport
     for k, v in kw.items():
         if k in ("spp", "width", "height") and v < 1:
             raise UserError(f"--{k} must be >= 1, got {v}")
@@ -453,6 +455,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--width", type=int, help="image width in pixels")
     s.add_argument("--height", type=int, help="image height in pixels")
     s.add_argument("--no-sss", action="store_true", help="turn subsurface scattering off")
+    s.add_argument(
+        "--transport",
+        help="light transport in translucent objects: diffusion (the dipole family, fast) or "
+        "volumetric (exact random walks; overrides the scene's [sss] transport)",
+    )
     s.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
     s.add_argument(
         "--tonemap", default="clip", choices=["clip", "reinhard", "aces"], help="PNG tone mapping"

@@ -20,6 +20,14 @@ What is recorded (lengths in mm):
 | `ss_refracted` | single scattering: from `x_o` along the refracted ray to a scatter point |
 | `ss_light` | single scattering: from the scatter point to where it leaves towards a light |
 | `dipole` | per-pixel Monte Carlo strategies: from `x_o` to a dipole sample point |
+| `walk` | volumetric transport: a free flight inside a medium (to a scattering point or the boundary) |
+| `exit` | volumetric: the ray outside after a walk leaves its object (refracted out) |
+| `bounce` | volumetric: the ray after a diffuse bounce |
+| `connection` | volumetric: next-event estimation from a medium vertex, refracted at the boundary: vertex -> boundary point -> light (its last leg `shadow_blocked` when occluded) |
+
+In the volumetric transport (`[sss] transport = "volumetric"`) the tree is the random walks
+of the pixel's samples, event by event, with every next-event connection they tried (shadow
+rays from diffuse vertices are `shadow` / `shadow_blocked`); `depth` is the event number.
 
 Rays leave surfaces from a point offset by the tracer's `EPS` (1e-3 mm) along the normal, as
 the tracer casts them, so a reflected or shadow ray starts up to 1e-3 mm from where its
@@ -55,8 +63,32 @@ from .transport import Recorder
 
 __all__ = ["KINDS", "RayTree", "raytree", "plot_raytree", "raytree_files"]
 
-KINDS = ("camera", "reflected", "shadow", "shadow_blocked", "ss_refracted", "ss_light", "dipole")
-CAMERA, REFLECTED, SHADOW, SHADOW_BLOCKED, SS_REFRACTED, SS_LIGHT, DIPOLE = range(len(KINDS))
+KINDS = (
+    "camera",
+    "reflected",
+    "shadow",
+    "shadow_blocked",
+    "ss_refracted",
+    "ss_light",
+    "dipole",
+    "walk",
+    "exit",
+    "bounce",
+    "connection",
+)
+(
+    CAMERA,
+    REFLECTED,
+    SHADOW,
+    SHADOW_BLOCKED,
+    SS_REFRACTED,
+    SS_LIGHT,
+    DIPOLE,
+    WALK,
+    EXIT,
+    BOUNCE,
+    CONNECTION,
+) = range(len(KINDS))
 
 COLORS = {
     "camera": "#ffffff",
@@ -66,6 +98,10 @@ COLORS = {
     "ss_refracted": "#1f78ff",
     "ss_light": "#74a9ff",
     "dipole": "#3050c0",
+    "walk": "#ff9f1c",
+    "exit": "#f781bf",
+    "bounce": "#c08a3e",
+    "connection": "#ffff66",
 }
 POINT_COLOR = "#00e5ff"
 POINT_MIN_WEIGHT = 0.01  # points lighter than this fraction of the heaviest are not drawn
@@ -194,6 +230,8 @@ class _Recorder(Recorder):
     _first: dict = field(default_factory=dict)  # sample -> segment ending at its x_o
     _ctx: np.ndarray | None = None  # parent segment of the next shadow rays, per leading index
     _ss: np.ndarray | None = None  # (M, n_ss) the ss_refracted segments
+    _wprev: np.ndarray | None = None  # volumetric: each walker's last segment
+    _wkind: np.ndarray | None = None  # volumetric: the kind of each walker's next flight outside
 
     def begin(self, rows: np.ndarray) -> None:
         """Start a block: record the rows where `rows` is True."""
@@ -331,6 +369,63 @@ class _Recorder(Recorder):
         self._ctx = np.full(self._ss.shape, -1, np.int64)
         self._ctx[sel] = ids
 
+    def walk(self, event: int, rays: dict) -> None:
+        """One event of the volumetric walks (`Recorder.walk`): the flight as a `camera`,
+        `reflected`, `exit`, `bounce` or `walk` segment (by what came before it), and the
+        next-event connections tried from its end."""
+        alive = rays["alive"]
+        W = alive.shape[0]
+        if event == 0:
+            self._wprev = np.full(W, -1, np.int64)
+            self._wkind = np.full(W, CAMERA, np.int32)
+        m = np.flatnonzero(alive)
+        if not len(m):
+            return
+        code = rays["code"]
+        kind = np.where(rays["inside"][m], WALK, self._wkind[m])
+        miss = code[m] == _EVENT["miss"]
+        end = np.where(miss[:, None], rays["o"][m] + self.far * rays["d"][m], rays["end"][m])
+        ids = np.zeros(len(m), np.int64)
+        for k in np.unique(kind):
+            s = kind == k
+            ids[s] = self._add(
+                int(k),
+                rays["o"][m][s],
+                end[s],
+                self._wprev[m][s],
+                event,
+                rays["sample"][m][s],
+                miss[s],
+            )
+        self._wprev[m] = ids
+        # what the next flight outside is drawn as
+        nxt = {
+            "mirror": REFLECTED,
+            "reflect_outside": REFLECTED,
+            "exit": EXIT,
+            "diffuse": BOUNCE,
+        }
+        for name, k in nxt.items():
+            self._wkind[m[code[m] == _EVENT[name]]] = k
+        for key, legs in (("nee_m", True), ("nee_d", False)):
+            c = rays[key]
+            t = np.flatnonzero(c["tried"] & alive)
+            if not len(t):
+                continue
+            parent = self._wprev[t]
+            depth, sample = event, rays["sample"][t]
+            vis = c["vis"][t]
+            if legs:  # vertex -> boundary point, then boundary point -> light
+                first = self._add(CONNECTION, c["x"][t], c["b"][t], parent, depth, sample)
+                parent = first
+                start = c["b"][t]
+            else:
+                start = c["x"][t]
+            for v, k in ((True, CONNECTION if legs else SHADOW), (False, SHADOW_BLOCKED)):
+                s = vis == v
+                if s.any():
+                    self._add(k, start[s], c["y"][t][s], parent[s], depth, sample[s])
+
     def tree(self, pixel, radiance) -> RayTree:
         cat = {
             f: np.concatenate(v) if v else np.zeros((0, 3) if f in ("origin", "end") else 0)
@@ -358,6 +453,24 @@ class _Recorder(Recorder):
 
 
 _SEG_FIELDS = ("origin", "end", "kind", "depth", "sample", "parent", "miss")
+_EVENT = {
+    name: i
+    for i, name in enumerate(
+        (
+            "scatter",
+            "reflect_inside",
+            "exit",
+            "light",
+            "miss",
+            "diffuse",
+            "mirror",
+            "reflect_outside",
+            "enter",
+            "through",
+            "cut",
+        )
+    )
+}  # sssjax.transport.volumetric.EVENT (not imported: the module loads on first use)
 
 
 @jax.jit
@@ -511,7 +624,8 @@ def _camera_view(ax0, tree: RayTree, scene: Scene, image, note: str, pts, sizes)
         a, b, keep = _clip_front(tree.origin, tree.end, z_o, z_e, 1e-4 * scale)
     pa = np.asarray(project(cam, jnp.asarray(a)), float) if len(tree) else np.zeros((0, 2))
     pb = np.asarray(project(cam, jnp.asarray(b)), float) if len(tree) else np.zeros((0, 2))
-    order = [CAMERA, DIPOLE, SS_REFRACTED, SS_LIGHT, SHADOW_BLOCKED, SHADOW, REFLECTED]
+    order = [CAMERA, DIPOLE, SS_REFRACTED, SS_LIGHT, WALK, CONNECTION, SHADOW_BLOCKED, SHADOW]
+    order += [REFLECTED, EXIT, BOUNCE]
     for kcode in order:
         s = keep & (tree.kind == kcode)
         if s.any():
@@ -585,7 +699,7 @@ def plot_raytree(
     org = np.asarray(cam.origin, float)
     counts = tree.counts()
 
-    close_up = bool(np.any(tree.of_kind("ss_refracted", "ss_light", "dipole")))
+    close_up = bool(np.any(tree.of_kind("ss_refracted", "ss_light", "dipole", "walk")))
     if close_up:
         fig, (ax0, ax1, ax2) = plt.subplots(
             1, 3, figsize=(19, 6.6), facecolor="#111111", width_ratios=(1.35, 1, 1)
@@ -601,7 +715,8 @@ def plot_raytree(
 
     pts, sizes = _heavy_points(tree)
     _camera_view(ax0, tree, scene, image, note, pts, sizes)
-    order = [CAMERA, DIPOLE, SS_REFRACTED, SS_LIGHT, SHADOW_BLOCKED, SHADOW, REFLECTED]
+    order = [CAMERA, DIPOLE, SS_REFRACTED, SS_LIGHT, WALK, CONNECTION, SHADOW_BLOCKED, SHADOW]
+    order += [REFLECTED, EXIT, BOUNCE]
 
     # -- side views: orthographic along the camera's right axis ---------------------------
     def side(p):
@@ -651,7 +766,7 @@ def plot_raytree(
     fin = np.concatenate([so, se[~tree.miss], side(tree.points), np.zeros((1, 2))])
     draw_side(ax1, fin.min(axis=0), fin.max(axis=0), "side view (orthographic, camera at left)")
     if ax2 is not None:
-        sub = tree.of_kind("ss_refracted", "ss_light", "dipole")
+        sub = tree.of_kind("ss_refracted", "ss_light", "dipole", "walk")
         c = np.concatenate([so[sub], se[sub]]).mean(axis=0)
         ends = np.concatenate([so[sub], se[sub]])
         half = max(1.2 * float(np.max(np.abs(ends - c))), 0.5)

@@ -202,6 +202,8 @@ class Renderer:
         arrays = self.arrays_for(
             {n: m.eta for n, m in zip(self.arrays.materials, media, strict=True)}
         )
+        if tm.reweighted:  # sample the walks with the media rendered (no re-weighting)
+            arrays = arrays.with_media(media)
         state = self.image_state(key, arrays)
         fused = None if tm.two_phase or not tm.media_dependent else media
         counter = [0]
@@ -216,13 +218,24 @@ class Renderer:
         cam = self.scene.camera
         return img.reshape(cam.height, cam.width, 3)
 
-    def trace(self, key, progress: bool = False, etas: Mapping | None = None, gain=None):
+    def trace(
+        self,
+        key,
+        progress: bool = False,
+        etas: Mapping | None = None,
+        gain=None,
+        proposal: Mapping | None = None,
+    ):
         """The `Transport` of the whole image; `etas` overrides translucent materials'
         refractive index by name (geometry: it bends rays) and `gain` multiplies each
-        light's emission (one factor per light, scene order), without recompiling."""
+        light's emission (one factor per light, scene order), without recompiling.
+        `proposal` (media by material name) replaces the media a re-weighting transport
+        samples its walks with (`TransportMethod.reweighted`; the others ignore it)."""
         key = as_key(key, self.scene)
         tm = self.transport
         arrays = self.arrays_for(etas, gain)
+        if proposal and tm.reweighted:
+            arrays = arrays.with_media(proposal)
         state = self.image_state(key, arrays)
         counter = [0]
         pix_all, base_all, rows_all, parts = [], [], [], []

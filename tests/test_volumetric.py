@@ -146,7 +146,11 @@ def test_sphere_connections_are_refracted_paths_and_G_gives_the_lights_solid_ang
 
 
 # --- whole images -----------------------------------------------------------------------------
-def _furnace(sigma_a, sigma_s, g, eta, width=16):
+def _furnace(sigma_a, sigma_s, g, eta, width=16, sky="background"):
+    """Objects of every primitive in a uniform sky of radiance 1: the scene's `background`,
+    or an environment light (`[[lights]] type = "environment"`) over a black background."""
+    bg = 1.0 if sky == "background" else 0.0
+    lights = [] if sky == "background" else [{"type": "environment", "radiance": 1.0}]
     return sssjax.load_scene(
         {
             "camera": {
@@ -156,7 +160,7 @@ def _furnace(sigma_a, sigma_s, g, eta, width=16):
                 "width": width,
                 "height": width,
             },
-            "render": {"spp": 4, "background": 1.0},
+            "render": {"spp": 4, "background": bg},
             "materials": {
                 "m": {
                     "type": "translucent",
@@ -185,7 +189,7 @@ def _furnace(sigma_a, sigma_s, g, eta, width=16):
                 },
                 {"type": "sphere", "material": "w", "radius": 3.0, "translate": [0, -8, 5]},
             ],
-            "lights": [],
+            "lights": lights,
         }
     )
 
@@ -205,6 +209,15 @@ def test_white_furnace_non_absorbing_objects_are_invisible(g, eta):
     px = img.reshape(-1, 3)
     se = px.std(0, ddof=1) / np.sqrt(len(px))
     assert np.all(np.abs(px.mean(0) - 1.0) < 4 * se + 1e-5), (px.mean(0), se)
+
+
+def test_white_furnace_under_an_environment_light():
+    """The furnace lit by `[[lights]] type = "environment"` instead of the background: the
+    same invisibility, so the environment light reaches every path that leaves the scene."""
+    sc = _furnace(0.0, [0.5, 2.0, 1.0], 0.3, 1.33, width=12, sky="environment")
+    img, _, _, tot = walk(sc, 4, 2, spectral="separate")
+    np.testing.assert_allclose(img, 1.0, atol=2e-5)
+    assert abs(tot["escaped"] - tot["walkers"]) < 1e-4 * tot["walkers"]
 
 
 @pytest.mark.parametrize("spectral", ["separate", "mis"])
@@ -504,3 +517,26 @@ def test_reweighting_gradients_match_central_differences(x64):
     # sigma_s = 0: records with scattering events weigh 0, gradients stay finite
     z = jnp.asarray([0.1, 0.1, 0.1, 0.0, 0.85, 0.45, 0.2, 0.06, 0.08, 0.28, 0.41, 0.95])
     assert np.all(np.isfinite(np.asarray(jax.grad(f)(z))))
+
+
+# --- the ray tree -------------------------------------------------------------------------
+@pytest.mark.slow
+def test_ray_tree_of_a_walk_recomputes_the_pixel_and_stays_inside_the_object():
+    """`raytree` of a volumetric pixel: the recorded walks give the rendered radiance; every
+    flight in the medium lies inside the cube; the walks are chains from the camera rays."""
+    from sssjax.raytree import KINDS, raytree
+
+    sc = sssjax.load_scene("scenes/marble_cube.toml").with_settings(
+        width=16, height=16, spp=2, sss_transport="volumetric"
+    )
+    img = sssjax.render(sc)
+    tree = raytree(sc, (8, 7))
+    np.testing.assert_allclose(tree.radiance, img[7, 8], rtol=1e-4, atol=1e-7)
+    counts = tree.counts()
+    assert counts["camera"] == 2 and counts["walk"] > 10 and counts["connection"] > 0
+    walk = tree.kind == KINDS.index("walk")
+    lo, hi = np.array([-10.0, 0.0, -10.0]), np.array([10.0, 20.0, 10.0])  # the cube
+    for p in (tree.origin[walk], tree.end[walk]):
+        assert np.all((p >= lo - 1e-3) & (p <= hi + 1e-3))
+    idx = np.arange(len(tree))
+    assert np.all(tree.parent < idx) and np.all((tree.parent >= 0) | (tree.kind == 0))

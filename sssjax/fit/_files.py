@@ -50,7 +50,8 @@ def load_fit_file(path: str | Path) -> FitJob:
     `[settings]` (scene overrides: `width`, `height`, `spp`, `light_samples`,
     `sss_cloud_size`, ...), `[solver]` (`method` lm|gn|bfgs, `seed`, and the other
     `FitOptions`: `max_steps`, `rtol`, `atol`, `loss` l2|cauchy|huber, `loss_scale`,
-    `weighting` absolute|relative, `rel_floor`, `traces`, `refine`), `output` (folder).
+    `weighting` absolute|relative, `rel_floor`, `traces`, `refine`, `proposal_rounds`,
+    `proposal_tol`), `output` (folder).
     """
     path = Path(path)
     d = read_toml(path, FitError, "fit file")

@@ -99,6 +99,9 @@ class FitOptions:
       solution, then fit the average of both. The final values are the joint fit; the
       difference between the two single-trace fits measures the trace noise, reported in
       `trace_stderr` and added (in quadrature) to `stderr`.
+    - `proposal_rounds`, `proposal_tol`: with a re-weighting transport (`volumetric`), how
+      many times at most the fit re-traces with its solution as the walks' proposal, and the
+      change of the solution (relative, in every coefficient) below which it stops early.
     """
 
     solver: str = "lm"
@@ -111,10 +114,16 @@ class FitOptions:
     rel_floor: float = 0.01
     traces: int = 1
     refine: bool = False
+    proposal_rounds: int = 8
+    proposal_tol: float = 0.02
 
     def __post_init__(self):
         if not (isinstance(self.traces, int) and self.traces >= 1):
             raise FitError(f"traces must be an integer >= 1, got {self.traces!r}")
+        if not (isinstance(self.proposal_rounds, int) and self.proposal_rounds >= 0):
+            raise FitError(f"proposal_rounds must be an integer >= 0, got {self.proposal_rounds!r}")
+        if not self.proposal_tol > 0:
+            raise FitError(f"proposal_tol must be > 0, got {self.proposal_tol}")
         LOSSES.check(self.loss, FitError)
         if not self.loss_scale > 0:
             raise FitError(f"loss_scale must be > 0, got {self.loss_scale}")

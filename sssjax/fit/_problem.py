@@ -29,6 +29,7 @@ from ..media import Medium
 from ..params import Enters, Parameter, ParameterError
 from ..render import as_key, renderer_for
 from ..scene import Scene
+from ..transport import TRANSPORTS
 from ._options import LOSSES, WEIGHTINGS, FitOptions
 from ._result import FitError
 
@@ -132,11 +133,14 @@ class TraceData:
         return out.reshape(shape)
 
 
-def trace_data(renderer, gains, key, tgt, mask, progress: bool, etas=None) -> TraceData:
+def trace_data(
+    renderer, gains, key, tgt, mask, progress: bool, etas=None, proposal=None
+) -> TraceData:
     """Trace once per light group (`gains`, from `light_groups`; `etas`: refractive indices
-    by material) and keep what the fit needs. `mask=None` fits every pixel with terms but
-    the highlights (`highlights`); `TraceData.mask` is the mask used."""
-    transports = [renderer.trace(key, progress, etas, g) for g in gains]
+    by material; `proposal`: the media a re-weighting transport samples with, by material)
+    and keep what the fit needs. `mask=None` fits every pixel with terms but the
+    highlights (`highlights`); `TraceData.mask` is the mask used."""
+    transports = [renderer.trace(key, progress, etas, g, proposal) for g in gains]
     transport = transports[0]
     pix = np.asarray(transport.translucent_pixels())
     rows = np.asarray(transport.t_rows)
@@ -207,6 +211,8 @@ class Args(eqx.Module):
     loss_scale: Float[Array, ""]
     base: Float[Array, "G N 3"]
     weights: Float[Array, "N 3"]
+    # re-weighting transports: each group's terms in two independent halves (`Prepared.halves`)
+    halves: tuple | None = None
 
 
 def residual_args(data: list[TraceData], media0: dict, loss_scale, dt) -> Args:
@@ -242,8 +248,11 @@ def residual_args(data: list[TraceData], media0: dict, loss_scale, dt) -> Args:
         ]
         return type(parts[0]).mean(parts).prepare(etas)
 
+    terms = tuple(group(g) for g in range(len(data[0].terms)))
+    halves = tuple(t.halves() for t in terms)
     return Args(
-        terms=tuple(group(g) for g in range(len(data[0].terms))),
+        terms=terms,
+        halves=halves if all(h is not None for h in halves) else None,
         target=jnp.asarray(tgt_flat / scale, dtype=dt),
         media0=tuple(media0[m] for m in order),
         scale=jnp.asarray(scale, dtype=dt),
@@ -254,27 +263,39 @@ def residual_args(data: list[TraceData], media0: dict, loss_scale, dt) -> Args:
 
 
 @eqx.filter_jit
-def model(layout: Layout, y, args: Args):
+def model(layout: Layout, y, args: Args, terms=None):
     """The fitted pixels' radiance at the solver's coordinates `y`, in units of the target's
-    mean: each light group's shading, scaled by its free intensity factor (groups past the
-    free lights are held at 1), summed, times the exposure."""
+    mean: each light group's shading (of `terms`, default `args.terms`), scaled by its free
+    intensity factor (groups past the free lights are held at 1), summed, times the
+    exposure."""
     n_c = 3 * len(layout.free)
     media = layout.media(y[:n_c], args.media0)
     out = 0.0
-    for g, terms in enumerate(args.terms):
-        L = terms.shade(media) / args.scale + args.base[g]
+    for g, t in enumerate(args.terms if terms is None else terms):
+        L = t.shade(media) / args.scale + args.base[g]
         out = out + (jnp.exp(y[n_c + g]) * L if g < layout.n_lights else L)
     return jnp.exp(y[-1]) * out if layout.exposure else out
 
 
 @functools.lru_cache(maxsize=32)
-def residual_fn(layout: Layout, loss: str = "l2"):
-    """`residuals(y, args)`: weighted model - target, through the robust `loss` transform."""
+def residual_fn(layout: Layout, loss: str = "l2", decorrelated: bool = False):
+    """`residuals(y, args)`: weighted model - target, through the robust `loss` transform.
+
+    `decorrelated` (terms that are samples, `Args.halves`): the residuals of the two
+    independent halves of the terms, stacked `(2, N)`, for a solver that minimises
+    `0.5 sum r_A r_B` (`sssjax._solvers`, `decorrelated=True`). A least-squares fit to a
+    noisy model leans toward the coefficients whose image is least noisy (the model's
+    variance is part of `E |t - m|^2`); the expectation of `(t - m_A)(t - m_B)` carries no
+    model variance, so its minimum is, in expectation, that of the noise-free model."""
     transform = LOSSES[loss]
 
     def residuals(y, args):
-        r = ((model(layout, y, args) - args.target) * args.weights).reshape(-1)
-        return transform(r, args.loss_scale)
+        if not decorrelated:
+            r = ((model(layout, y, args) - args.target) * args.weights).reshape(-1)
+            return transform(r, args.loss_scale)
+        halves = [tuple(h[i] for h in args.halves) for i in (0, 1)]
+        r = [((model(layout, y, args, t) - args.target) * args.weights).reshape(-1) for t in halves]
+        return transform(jnp.stack(r), args.loss_scale)
 
     return residuals
 
@@ -294,6 +315,9 @@ class FitProblem:
     progress: bool = False
     trace_time: float = 0.0  # seconds spent tracing so far
     fit_mask: np.ndarray | None = None  # the mask in use (the first trace's, without one)
+    # a re-weighting transport's proposal media by material (None: the scene's); the fit
+    # moves it to its solution between solves (`sssjax.fit._solve.run`)
+    proposal: dict | None = None
 
     @classmethod
     def build(cls, scene, target, params, init, mask, seed, options, progress) -> FitProblem:
@@ -313,6 +337,14 @@ class FitProblem:
             start = {p.name: p.initial(given.get(p.name), ETA_RANGE) for p in free}
         except ParameterError as e:
             raise FitError(str(e)) from None
+        if TRANSPORTS.get_entry(scene.sss.transport).reweighted:
+            g_free = [p.name for p in free if p.field == "g"]
+            if g_free:
+                raise FitError(
+                    f"{g_free[0]}: the {scene.sss.transport} transport cannot fit g (its "
+                    "walks are sampled with the scene's phase function and re-weighted in "
+                    "sigma_a and sigma_s only): set g in the scene and fit the others"
+                )
         if mask is not None:
             mask = np.asarray(mask, dtype=bool)
             if mask.shape != (cam.height, cam.width):
@@ -379,6 +411,23 @@ class FitProblem:
     def key(self):
         return as_key(self.seed, self.scene)
 
+    @property
+    def reweighted(self) -> bool:
+        """Whether the transport's traces are re-weighted samples of a proposal (then the
+        fit re-traces at its solution)."""
+        return self.renderer.transport.reweighted
+
+    def media_at(self, y, media: dict) -> dict:
+        """The media by material with the free coefficients at `y` (float64 NumPy), the rest
+        as in `media`."""
+        layout = self.layout
+        order = layout.order
+        fitted = layout.media(jnp.asarray(y), [media[n] for n in order])
+        return {
+            n: Medium(*(np.asarray(v, np.float64) for v in (m.sigma_a, m.sigma_s, m.g)), m.eta)
+            for n, m in zip(order, fitted, strict=True)
+        }
+
     def trace_keys(self) -> list:
         """The keys of the `traces` independent traces."""
         k0 = self.key
@@ -401,7 +450,16 @@ class FitProblem:
         gains = light_groups(len(self.scene.lights), self.lights)
         data = []
         for k in keys:
-            d = trace_data(self.renderer, gains, k, self.target, self.fit_mask, self.progress, etas)
+            d = trace_data(
+                self.renderer,
+                gains,
+                k,
+                self.target,
+                self.fit_mask,
+                self.progress,
+                etas,
+                self.proposal,
+            )
             if self.fit_mask is None and self.progress:
                 n_hl = len(d.all_pix) - len(d.pix)
                 print(

@@ -11,7 +11,7 @@ import numpy as np
 
 from ._problem import FitProblem, residual_args, residual_fn
 from ._result import FitResult
-from ._solve import Outcome, jacobian, loss_at
+from ._solve import Outcome, cross_jtj, jacobian, loss_at
 
 __all__ = ["report"]
 
@@ -33,14 +33,15 @@ def _eta_column(problem: FitProblem, out: Outcome, y) -> np.ndarray:
     return (cols[0] - cols[1]) / (2 * h)
 
 
-def covariance(J: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, list[str]]:
+def covariance(J: np.ndarray, r: np.ndarray, JtJ=None) -> tuple[np.ndarray, list[str]]:
     """The covariance of the coordinates from the Jacobian `J` and residuals `r`:
-    `s^2 (J^T J)^-1`, each variance raised to the sandwich estimate's where that is larger.
+    `s^2 (J^T J)^-1`, each variance raised to the sandwich estimate's where that is larger;
+    `JtJ` replaces `J^T J` (for Monte Carlo Jacobians: `cross_jtj`).
     **Returns:** `(cov, warnings)`; an infinite covariance when `J^T J` is singular."""
     warnings = []
     dof = max(r.size - J.shape[1], 1)
     s2 = float(r @ r) / dof
-    JtJ = J.T @ J
+    JtJ = J.T @ J if JtJ is None else JtJ
     try:
         cond = np.linalg.cond(JtJ)
         inv = np.linalg.inv(JtJ)
@@ -138,6 +139,20 @@ def _fit_quality(problem: FitProblem, out: Outcome, names, tanh_idx, sd_log, r) 
     return warnings
 
 
+def _sample_efficiency(problem: FitProblem, out: Outcome, y) -> float | None:
+    """A re-weighting transport's median (fitted pixels, channels) effective sample size at
+    the solution, over its value at the proposal; None for the other transports."""
+    terms = out.data[0].terms[0]
+    layout = problem.layout
+    media = layout.media(y[: 3 * len(layout.free)], out.run.args.media0)
+    eff = terms.sample_efficiency(media)
+    if eff is None:
+        return None
+    eff = np.asarray(eff, dtype=np.float64)
+    eff = eff[eff > 0]
+    return float(np.median(eff)) if eff.size else None
+
+
 def report(problem: FitProblem, out: Outcome, t_start: float) -> FitResult:
     """The `FitResult` of a fit's outcome."""
     run = out.run
@@ -145,11 +160,14 @@ def report(problem: FitProblem, out: Outcome, t_start: float) -> FitResult:
     names, tanh_idx = problem.names, problem.tanh_idx
     J, r = jacobian(problem, y, run.args)
     J, r = np.asarray(J, dtype=np.float64), np.asarray(r, dtype=np.float64)
+    # Monte Carlo terms (a re-weighting transport): J^T J from two independent halves
+    JtJ = cross_jtj(problem, y, run.args) if run.args.halves is not None else None
     if out.eta is not None:
         J = np.concatenate([J, _eta_column(problem, out, y)[:, None]], axis=1)
+        JtJ = None  # (the eta column has no halves)
         names = names + [problem.eta.name]
         tanh_idx = np.append(tanh_idx, False)
-    cov_log, warnings = covariance(J, r)
+    cov_log, warnings = covariance(J, r, JtJ)
     vals = problem.values(y)
     # d value / d y: value for log coordinates, 1 - g^2 for atanh
     dval = np.where(tanh_idx[: y.size], 1.0 - vals**2, vals)
@@ -173,6 +191,12 @@ def report(problem: FitProblem, out: Outcome, t_start: float) -> FitResult:
                 f"trace noise dominates the error (up to {ratio:.0f}x the statistical "
                 "error): use more traces, a larger cloud_size or more spp"
             )
+    efficiency = _sample_efficiency(problem, out, y)
+    if efficiency is not None and efficiency < 0.5:
+        warnings.append(
+            f"the re-weighting's effective sample size fell to {efficiency:.0%} of the "
+            "trace's: the error bars understate the trace noise; raise proposal_rounds"
+        )
     warnings += _identifiability(problem, names, corr)
     warnings += _fit_quality(problem, out, names, tanh_idx, sd_log, r)
     # an unidentified parameter has an infinite error bar (not 0 x inf = nan)
@@ -209,4 +233,5 @@ def report(problem: FitProblem, out: Outcome, t_start: float) -> FitResult:
         pixels=int(run.args.target.shape[0]),  # the pixels all traces share
         highlight_pixels=0 if hl is None else int(hl.sum()),
         highlights=hl,
+        sample_efficiency=efficiency,
     )

@@ -50,6 +50,9 @@ class FitResult:
     eta_search: list[dict[str, float]] | None = None
     pixels: int = 0  # pixels fitted (with several traces: the ones they all see)
     highlight_pixels: int = 0  # translucent pixels left out as highlights (no user mask)
+    # re-weighting transports: the median over the fitted pixels and channels of the
+    # effective sample size at the solution over its value at the trace's proposal
+    sample_efficiency: float | None = None
     # `(H, W)` the highlight pixels left out (not in the JSON)
     highlights: np.ndarray | None = dataclasses.field(default=None, repr=False)
 
@@ -108,6 +111,11 @@ class FitResult:
             lines.append(
                 f"{self.pixels} pixels fitted; {self.highlight_pixels} highlight pixels "
                 "(mostly mirror-reflected light, independent of the coefficients) left out"
+            )
+        if self.sample_efficiency is not None:
+            lines.append(
+                f"re-weighting: effective sample size at the solution "
+                f"{self.sample_efficiency:.0%} of the trace's (median pixel)"
             )
         lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)

@@ -15,10 +15,12 @@ import numpy as np
 import optimistix as optx
 
 from .._progress import Progress
+from .._solvers import gauss_newton_model
 from ._options import SOLVERS, WEIGHTINGS
 from ._problem import ETA_RANGE, Args, FitProblem, TraceData, residual_fn
+from ._result import FitError
 
-__all__ = ["Run", "Outcome", "solve", "run", "loss_at", "jacobian"]
+__all__ = ["Run", "Outcome", "solve", "run", "loss_at", "jacobian", "cross_jtj"]
 
 
 @dataclasses.dataclass
@@ -47,6 +49,55 @@ def _solver_fn(layout, scalar: bool, loss: str = "l2"):
 @eqx.filter_jit
 def _loss(residuals, y, args):
     return 0.5 * jnp.sum(residuals(y, args) ** 2)
+
+
+def _floored_inverse(H):
+    """`H^-1` with `|eigenvalues|` floored: a cross-product Hessian is unbiased but noisy,
+    and directions a trace cannot tell apart may come out with small or negative curvature."""
+    lam, V = jnp.linalg.eigh(0.5 * (H + H.T))
+    lam = jnp.maximum(jnp.abs(lam), 1e-6 * jnp.max(jnp.abs(lam)))
+    return (V / lam) @ V.T
+
+
+def _both(residuals):
+    def both(yy, a):
+        r = residuals(yy, a)
+        return r, r
+
+    return both
+
+
+@eqx.filter_jit
+def _decorrelated_step(residuals, y, args):
+    """The Gauss-Newton step of `0.5 sum r_A r_B` at `y` (the residuals of two independent
+    halves of the samples, `residual_fn(decorrelated=True)`, and the cross-product Hessian
+    `sssjax._solvers.gauss_newton_model`), the coordinates' standard errors from it, and
+    the plain loss of the whole."""
+    model, r = gauss_newton_model(_both(residuals), y, args, True)
+    H_inv = _floored_inverse(model.hessian.as_matrix())
+    dy = -H_inv @ model.grad
+    rbar = 0.5 * (r[0] + r[1])  # the residuals of the whole (the halves' mean)
+    m, n = rbar.size, H_inv.shape[0]
+    s2 = jnp.sum(rbar**2) / jnp.maximum(m - n, 1)
+    return dy, jnp.sqrt(jnp.diag(H_inv) * s2), 0.5 * jnp.sum(rbar**2)
+
+
+def cross_jtj(problem: FitProblem, y, args: Args) -> np.ndarray:
+    """`J^T J` of samples from two independent halves' Jacobians, `(J_A^T J_B + J_B^T J_A)
+    / 2` with its eigenvalues' magnitudes floored: free of the Jacobian's own noise, which
+    `J^T J` of one estimate adds to the information (and so shrinks the error bars)."""
+    residuals = residual_fn(problem.layout, problem.options.loss, True)
+    model, _ = _cross_model(residuals, y, args)
+    H = np.asarray(model, dtype=np.float64)
+    lam, V = np.linalg.eigh(0.5 * (H + H.T))
+    lam = np.maximum(np.abs(lam), 1e-6 * np.max(np.abs(lam)))
+    return (V * lam) @ V.T
+
+
+@eqx.filter_jit
+def _cross_model(residuals, y, args):
+    model, r = gauss_newton_model(_both(residuals), y, args, True)
+    return model.hessian.as_matrix(), r
 
 
 @eqx.filter_jit
@@ -125,7 +176,7 @@ def solve(
         window = 4 if lval < 0.5 * loss0 else 8
         if n >= window - 1:
             recent = [h["loss"] for h in history[-window:]]
-            if max(recent) - min(recent) <= opts.rtol * max(recent):
+            if max(recent) - min(recent) <= opts.rtol * max(abs(v) for v in recent):
                 result = optx.RESULTS.successful
                 stalled = True
                 break
@@ -197,9 +248,81 @@ def search_eta(problem: FitProblem, keys, y0):
     return best["eta"], tried, best["y"], first["loss0"], (lo, hi), best["traced"]
 
 
+def _retraced_rounds(problem: FitProblem, keys, media, r: Run, eta, weights_at=None):
+    """A re-weighting transport's fit after the first solve: Gauss-Newton rounds, each on a
+    fresh trace with the current solution as the walks' proposal.
+
+    A least-squares fit to a noisy model leans toward the coefficients whose image is least
+    noisy (the model's variance is part of `E |t - m|^2`; for a walk, larger `sigma_a`
+    cuts the long, noisy paths), so the first solve's minimum is biased by the trace noise,
+    and re-weighting far from the proposal only makes that noise larger. Each round here
+    takes one Gauss-Newton step of `0.5 sum r_A r_B` at the proposal (the residuals of two
+    independent halves of the walks, whose expectation carries no model variance) with the
+    exact re-weighting derivatives there, then re-traces where it lands with new random
+    numbers, so no round can tune the solution to one trace's noise. The rounds stop when
+    two steps in a row are within their standard errors (or `proposal_tol`), or after
+    `proposal_rounds`; the solution is the mean of the later half of the rounds' (from
+    four rounds on), whose scatter is each trace's noise. **Returns:** `(data, run, rounds)`: the last trace, the run at the
+    solution (its `args` from the last trace) and the solution of each round."""
+    opts = problem.options
+    names = problem.names
+    y = r.y
+    dt = jnp.float32 if jnp.asarray(y).dtype == jnp.float32 else jnp.float64
+    residuals = residual_fn(problem.layout, opts.loss, True)
+    history, rounds = list(r.history), []
+    bar = Progress(opts.proposal_rounds, "re-traced rounds", problem.progress, every_line=True)
+    data, args, converged, settled = None, None, False, 0
+    for k in range(opts.proposal_rounds):
+        problem.proposal = problem.media_at(y, media)
+        keys_k = [jax.random.fold_in(kk, 7_919 + k) for kk in keys]  # new random numbers
+        data, _ = problem.traced(keys_k, eta)
+        args = problem.args(data, media, dt, weights_at)
+        if args.halves is None:
+            raise FitError(
+                "the traces cannot be split into independent halves (odd walkers per "
+                "pixel): use an even spp"
+            )
+        dy, sd, loss = _decorrelated_step(residuals, y, args)
+        dy = np.asarray(dy, np.float64)
+        big = np.max(np.abs(dy))
+        if big > 0.5:  # far from the solution: a shorter step in the same direction
+            dy *= 0.5 / big
+        y = y + jnp.asarray(dy, y.dtype)
+        rounds.append(np.asarray(y, np.float64))
+        history.append(
+            {"step": len(history), "loss": float(loss), "params": problem.values(y).tolist()}
+        )
+        _progress_line(bar, k + 1, float(loss), names, problem.values(y))
+        within = np.all(np.abs(dy) <= np.maximum(opts.proposal_tol, np.asarray(sd)))
+        settled = settled + 1 if within else 0
+        if settled >= 2:  # two steps in a row within their noise
+            converged = True
+            break
+    bar.close()
+    if len(rounds) >= 4:
+        # the rounds' solutions scatter by the trace noise of each: average the later half
+        y = jnp.asarray(np.mean(rounds[len(rounds) // 2 :], axis=0), y.dtype)
+    message = (
+        "converged (the last re-traced step within its error)"
+        if converged
+        else (f"the re-traced steps did not settle within {opts.proposal_rounds} rounds")
+    )
+    run_ = Run(
+        y,
+        args,
+        r.steps + len(rounds),
+        r.loss0,
+        history,
+        converged,
+        "successful" if converged else "max_steps_reached",
+        message,
+    )
+    return data, run_, rounds
+
+
 def run(problem: FitProblem) -> Outcome:
-    """Every phase of a fit: trace (searching a free `eta`), solve, refit relative weights at
-    the model, and `refine` (a fresh trace fitted alone from the solution, then the average
+    """Every phase of a fit: trace (searching a free `eta`), solve, move a re-weighting
+    transport's proposal to the solution, refit relative weights at the model, and `refine` (a fresh trace fitted alone from the solution, then the average
     of both)."""
     keys = problem.trace_keys()
     y0 = problem.y0
@@ -209,9 +332,17 @@ def run(problem: FitProblem) -> Outcome:
         out.eta, out.eta_search, out.eta_loss0, out.eta_bounds = eta, tried, loss0, bounds
     else:
         (data, media), y_start = problem.traced(keys), y0
-    out.data = data
     r = solve(problem, data, media, y_start)
     refit = WEIGHTINGS[problem.options.weighting].refit
+    if problem.reweighted:
+        out.data, out.run, rounds = _retraced_rounds(
+            problem, keys, media, r, out.eta, weights_at=r.y if refit else None
+        )
+        if problem.options.refine and len(rounds) >= 2:
+            # the last two rounds are single-trace solutions at nearly the same proposal
+            out.trace_sd = 0.5 * np.abs(rounds[-1] - rounds[-2])
+        return out
+    out.data = data
     if refit:
         # weights from the target's own noisy values favour pixels whose noise happens to be
         # low and so bias the fit (by about the pixels' relative variance); refit with

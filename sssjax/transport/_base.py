@@ -40,6 +40,13 @@ class Prepared(eqx.Module):
     """Terms with everything fixed by the geometry and `eta` folded in (`Terms.prepare`):
     what a fit evaluates every iteration."""
 
+    def halves(self) -> tuple[Prepared, Prepared] | None:
+        """Re-weighting transports: the terms split into two statistically independent
+        halves (disjoint walks), each an estimate of the whole (twice its share), so that a
+        fit can take its residuals from one and its derivatives from the other; None where
+        the terms are not samples (or cannot be split)."""
+        return None
+
     @abc.abstractmethod
     def shade(self, media: Sequence, **options) -> Float[Array, "Pt 3"]:
         """Radiance of the rows for `media` (one `Medium` per translucent material, in the
@@ -72,6 +79,12 @@ class Terms(eqx.Module):
     def prepare(self, etas: Sequence) -> Prepared:
         """Fold what depends only on the geometry and the refractive indices `etas` (one per
         translucent material, in the transport's order) into the terms, once."""
+
+    def sample_efficiency(self, media: Sequence) -> Float[Array, "Pt 3"] | None:
+        """Re-weighting transports: per row and channel, the effective sample size of the
+        terms shaded at `media` over its value at the proposal (1 at the proposal, falling
+        as the media move away). None for transports whose terms are exact in the media."""
+        return None
 
     def shade(self, media: Sequence, **options) -> Float[Array, "Pt 3"]:
         """`prepare` at the media's `eta`, then `Prepared.shade`."""
@@ -134,6 +147,10 @@ class TransportMethod(abc.ABC):
 
     name: ClassVar[str]
     two_phase: ClassVar[bool] = False
+    # True: the terms are samples drawn with the arrays' media (the proposal) and re-weighted
+    # exactly to any media; a fit re-traces at its solution so the proposal matches (lower
+    # variance), and `g` (not re-weighted) cannot be fitted
+    reweighted: ClassVar[bool] = False
 
     @abc.abstractmethod
     def __init__(self, arrays): ...

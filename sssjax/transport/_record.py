@@ -43,5 +43,13 @@ class Recorder:
     def ss_exit(self, xs, xi) -> None:
         """Single scattering towards one light: scatter point -> exit point."""
 
+    def walk(self, event: int, rays: dict) -> None:
+        """One event of volumetric walks (NumPy arrays, one row per walker recorded):
+        `o -> end` (a miss ends at `o`; it leaves along `d`), the event `code` that ended
+        the flight (`sssjax.transport.volumetric.EVENT`), `alive`, `inside` (a flight in a
+        medium), the walker's camera `sample`, and the next-event connections tried,
+        `nee_m` (from a medium vertex `x` through the boundary at `b` to the light point `y`)
+        and `nee_d` (shadow rays `x -> y` from a diffuse vertex), each with `tried`, `vis`."""
+
 
 NO_RECORD = Recorder()

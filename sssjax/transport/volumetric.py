@@ -47,6 +47,8 @@ inside media, so refraction multiplies by the Fresnel transmittance only).
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -90,6 +92,20 @@ _LEDGER = ("escaped", "emitter", "absorbed", "roulette", "cut")
 _WIDTHS = (1, 8, 64)  # walkers are packed into 1/k of the block as they end
 _PHASE = 8  # events between re-packings
 _BLOCK_WALKERS = 1 << 15  # walkers traced together by the renderer
+# what ended each free flight (`_step(record=True)`, the ray tree)
+EVENT = (
+    "scatter",
+    "reflect_inside",
+    "exit",
+    "light",
+    "miss",
+    "diffuse",
+    "mirror",
+    "reflect_outside",
+    "enter",
+    "through",
+    "cut",
+)
 
 
 class Proposal(eqx.Module):
@@ -121,10 +137,16 @@ class VolumetricTerms(Terms):
     L: Float[Array, "P R Mt"]  # path length in each medium, mm
     sigma_s0: Float[Array, "Mt 3"]
     sigma_t0: Float[Array, "Mt 3"]
+    per_walker: int = eqx.field(static=True, default=1)  # records of one walker, adjacent
 
     def rows(self, rows) -> VolumetricTerms:
         return VolumetricTerms(
-            self.w[:, rows], self.n[rows], self.L[rows], self.sigma_s0, self.sigma_t0
+            self.w[:, rows],
+            self.n[rows],
+            self.L[rows],
+            self.sigma_s0,
+            self.sigma_t0,
+            self.per_walker,
         )
 
     @classmethod
@@ -138,10 +160,17 @@ class VolumetricTerms(Terms):
             cat([p.L for p in parts], axis=0),
             p0.sigma_s0,
             p0.sigma_t0,
+            p0.per_walker,
         )
 
+    def sample_efficiency(self, media) -> Array:
+        ess, ess0 = effective_sample_size(self, media)
+        return safe_div(ess, ess0)
+
     def prepare(self, etas) -> VolumetricShading:
-        return VolumetricShading(self.w, self.n, self.L, self.sigma_s0, self.sigma_t0)
+        return VolumetricShading(
+            self.w, self.n, self.L, self.sigma_s0, self.sigma_t0, self.per_walker
+        )
 
     @classmethod
     def mean(cls, parts) -> VolumetricTerms:
@@ -158,6 +187,7 @@ class VolumetricTerms(Terms):
             cat([p.L for p in parts], axis=1),
             parts[0].sigma_s0,
             parts[0].sigma_t0,
+            parts[0].per_walker,
         )
 
 
@@ -169,6 +199,24 @@ class VolumetricShading(Prepared):
     L: Float[Array, "P R Mt"]
     sigma_s0: Float[Array, "Mt 3"]
     sigma_t0: Float[Array, "Mt 3"]
+    per_walker: int = eqx.field(static=True, default=1)  # records of one walker, adjacent
+
+    def halves(self) -> tuple[VolumetricShading, VolumetricShading] | None:
+        """The records of even and odd walkers, each at twice its weight (walks are
+        independent; a walker's records share its path, so they stay together)."""
+        K = self.per_walker
+        R = self.w.shape[-1]
+        if R % (2 * K):
+            return None
+        P = self.n.shape[0]
+
+        def pick(j):
+            w = self.w.reshape(3, P, R // (2 * K), 2, K)[:, :, :, j].reshape(3, P, R // 2)
+            n = self.n.reshape(P, R // (2 * K), 2, K, -1)[:, :, j].reshape(P, R // 2, -1)
+            L = self.L.reshape(P, R // (2 * K), 2, K, -1)[:, :, j].reshape(P, R // 2, -1)
+            return VolumetricShading(2.0 * w, n, L, self.sigma_s0, self.sigma_t0, K)
+
+        return pick(0), pick(1)
 
     def shade(self, media, *, multiple: bool = True, single: bool = True, **_) -> Array:
         """The exact re-weighting to `media`; `single` / `multiple`: the light scattered
@@ -330,14 +378,16 @@ def _area_point(la, k, u1, u2):
 
 # --- next-event estimation -------------------------------------------------------------
 # --- next-event estimation -------------------------------------------------------------
-def _nee_diffuse(vs: VolScene, x, ns, u):
+def _nee_diffuse(vs: VolScene, x, ns, u, geometry: bool = False):
     """Direct light at diffuse vertices `x` (facing normal `ns`), per unit albedo / pi:
-    `int L_e cos dw` from one light chosen by power. **Returns:** `(W, 3)` irradiance."""
+    `int L_e cos dw` from one light chosen by power. **Returns:** `(W, 3)` irradiance;
+    with `geometry`, also the shadow rays as `(x, y, tried, visible)` (for the ray tree)."""
     la = vs.lights
     na, npt, nb = la.n_area, la.n_point, la.n_beam
     W = x.shape[0]
+    geo = dict(x=x, b=x, y=x, tried=jnp.zeros(W, bool), vis=jnp.zeros(W, bool))
     if na + npt + nb == 0:
-        return jnp.zeros((W, 3))
+        return (jnp.zeros((W, 3)), geo) if geometry else jnp.zeros((W, 3))
     idx, p_pick = _pick_light(vs, u[:, 0])
     E = jnp.zeros((W, 3))
     if na:
@@ -353,6 +403,7 @@ def _nee_diffuse(vs: VolScene, x, ns, u):
         vis = ~_occluded(vs, x + EPS * ns, w, dist * (1 - 1e-4))
         g = la.area[k] * cos_x * cos_l * safe_div(1.0, d2)
         E = jnp.where((ok & vis)[:, None], la.radiance[k] * g[:, None], E)
+        geo = _geo(geo, ok, x, x, y, vis)
     if npt:
         k = jnp.clip(idx - na, 0, npt - 1)
         w = la.position[k] - x
@@ -364,6 +415,7 @@ def _nee_diffuse(vs: VolScene, x, ns, u):
         vis = ~_occluded(vs, x + EPS * ns, w, dist * (1 - 1e-4))
         g = cos_x * safe_div(1.0, d2)
         E = jnp.where((ok & vis)[:, None], la.intensity[k] * g[:, None], E)
+        geo = _geo(geo, ok, x, x, la.position[k], vis)
     if nb:
         k = jnp.clip(idx - na - npt, 0, nb - 1)
         d = la.beam_dir[k]
@@ -375,7 +427,22 @@ def _nee_diffuse(vs: VolScene, x, ns, u):
         vis = ~_occluded(vs, x + EPS * ns, -d, along * (1 - 1e-4))
         g = cos_x / (jnp.pi * la.beam_radius[k] ** 2)
         E = jnp.where((ok & vis)[:, None], la.beam_power[k] * g[:, None], E)
-    return E / p_pick[:, None]
+        geo = _geo(geo, ok, x, x, x - along[:, None] * d, vis)
+    E = E / p_pick[:, None]
+    return (E, geo) if geometry else E
+
+
+def _geo(geo, ok, x, b, y, vis):
+    """The connection `x -> b -> y` where `ok` (b = x: a straight shadow ray), kept for the
+    ray tree."""
+    sel = lambda a, v: jnp.where(ok.reshape(ok.shape + (1,) * (a.ndim - 1)), v, a)  # noqa: E731
+    return dict(
+        x=sel(geo["x"], x),
+        b=sel(geo["b"], b),
+        y=sel(geo["y"], y),
+        tried=geo["tried"] | ok,
+        vis=sel(geo["vis"], vis),
+    )
 
 
 def _faces(vs: VolScene, obj):
@@ -447,21 +514,23 @@ def _connect_boundary(vs: VolScene, x, y, obj, eta, u_face):
     )
 
 
-def _nee_medium(vs: VolScene, x, d, obj, g, sig_s0, sig_t0, u):
+def _nee_medium(vs: VolScene, x, d, obj, g, sig_s0, sig_t0, u, geometry: bool = False):
     """In-scattered radiance at medium vertices `x` (the walker arrived along `d`), from one
     light chosen by power, through the boundary of shape `obj`; `g`, `sig_s0`, `sig_t0`
     `(W, 3)` per channel.
 
     **Returns:** `(c (W, 3), dL, dn)`: the estimate at the proposal (per unit path weight),
-    and the extra length in the medium and scattering events its path adds.
+    and the extra length in the medium and scattering events its path adds; with
+    `geometry`, also the connections `(x, b, y, tried, visible)` (for the ray tree).
     """
     la = vs.lights
     na, npt, nb = la.n_area, la.n_point, la.n_beam
     W = x.shape[0]
     zero = jnp.zeros(W)
     c_out = jnp.zeros((W, 3))
+    geo = dict(x=x, b=x, y=x, tried=jnp.zeros(W, bool), vis=jnp.zeros(W, bool))
     if na + npt + nb == 0:
-        return c_out, zero, zero
+        return (c_out, zero, zero, geo) if geometry else (c_out, zero, zero)
     eta = vs.eta[obj]
     idx, p_pick = _pick_light(vs, u[:, 0])
     dL, dn = zero, zero
@@ -482,7 +551,7 @@ def _nee_medium(vs: VolScene, x, d, obj, g, sig_s0, sig_t0, u):
             inside_ok = vs.convex[obj] | (t_in >= con["d1"] * (1 - 1e-3))
         phase = hg_phase(_dot(d, con["w1"])[:, None], g)
         att = jnp.exp(-sig_t0 * con["d1"][:, None])
-        geo = Ft * con["G_perp"]
+        geo_f = Ft * con["G_perp"]
         if na:
             cos_l = -_dot(con["w2"], la.normal[ka])
             em_a = la.radiance[ka] * (la.area[ka] * jnp.maximum(cos_l, 0.0))[:, None]
@@ -491,8 +560,10 @@ def _nee_medium(vs: VolScene, x, d, obj, g, sig_s0, sig_t0, u):
         em_p = la.intensity[kp] if npt else jnp.zeros((W, 3))
         em = jnp.where(is_area[:, None], em_a, em_p)
         ok = (idx < na + npt) & con["ok"] & vis & inside_ok
-        c_out = jnp.where(ok[:, None], phase * att * geo[:, None] * em, 0.0)
+        c_out = jnp.where(ok[:, None], phase * att * geo_f[:, None] * em, 0.0)
         dL = jnp.where(ok, con["d1"], 0.0)
+        tried = (idx < na + npt) & con["ok"] & inside_ok
+        geo = _geo(geo, tried, x, con["b"], y, vis)
     if nb:
         is_beam = idx >= na + npt
         k = jnp.clip(idx - na - npt, 0, nb - 1)
@@ -539,7 +610,9 @@ def _nee_medium(vs: VolScene, x, d, obj, g, sig_s0, sig_t0, u):
         c_out = jnp.where(okb[:, None], cb * scal[:, None], c_out)
         dL = jnp.where(okb, tt + r, dL)
         dn = jnp.where(okb, 1.0, dn)
-    return c_out / p_pick[:, None], dL, dn
+        geo = _geo(geo, okb, x, xb + tt[:, None] * din, ob, jnp.ones(W, bool))
+    c_out = c_out / p_pick[:, None]
+    return (c_out, dL, dn, geo) if geometry else (c_out, dL, dn)
 
 
 class _BeamEntry(eqx.Module):
@@ -717,9 +790,11 @@ def _safe_log(x):
     return jnp.where(pos, jnp.log(jnp.where(pos, x, 1.0)), -jnp.inf)
 
 
-def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee=True, be=None, mis=True):
+def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee=True, be=None, mis=True, record=False):
     """One event for every walker: a free flight inside a medium, or a hit outside.
-    `be`: the scene's beams as they enter media (`_beam_entry`), or None without beams."""
+    `be`: the scene's beams as they enter media (`_beam_entry`), or None without beams.
+    `record`: also return the event's rays (`(state, rays)`, for the ray tree: the flight
+    `o -> end`, its `EVENT` code, and the next-event connections tried)."""
     o, d, thr, lf, lp, hero = st["o"], st["d"], st["thr"], st["lf"], st["lp"], st["hero"]
     alive, med, obj = st["alive"], st["med"], st["obj"]
     K = st["res_n"].shape[1]
@@ -768,16 +843,22 @@ def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee=True, be=None, mis=Tru
     # contributions: light scattered at the vertex, direct light on diffuse surfaces,
     # emitters and the environment seen
     obj0 = jnp.maximum(obj, 0)
-    c_med, dL, dn = jax.lax.cond(
-        jnp.any(scatter) & nee,
-        lambda: _nee_medium(vs, x_s, d, obj0, g3, ss0, st0, u[:, 1:8]),
-        lambda: (jnp.zeros((W, 3)), jnp.zeros(W), jnp.zeros(W)),
-    )
-    E = jax.lax.cond(
-        jnp.any(diffuse),
-        lambda: _nee_diffuse(vs, x_t, ns, u[:, 1:4]),
-        lambda: jnp.zeros((W, 3)),
-    )
+    if record:  # eager-sized blocks: no branches to skip, and the rays are kept
+        c_med, dL, dn, g_med = _nee_medium(vs, x_s, d, obj0, g3, ss0, st0, u[:, 1:8], True)
+        if not nee:
+            c_med, dL, dn = c_med * 0.0, dL * 0.0, dn * 0.0
+        E, g_dif = _nee_diffuse(vs, x_t, ns, u[:, 1:4], True)
+    else:
+        c_med, dL, dn = jax.lax.cond(
+            jnp.any(scatter) & nee,
+            lambda: _nee_medium(vs, x_s, d, obj0, g3, ss0, st0, u[:, 1:8]),
+            lambda: (jnp.zeros((W, 3)), jnp.zeros(W), jnp.zeros(W)),
+        )
+        E = jax.lax.cond(
+            jnp.any(diffuse),
+            lambda: _nee_diffuse(vs, x_t, ns, u[:, 1:4]),
+            lambda: jnp.zeros((W, 3)),
+        )
     alb = vs.albedo[sidc]
     contrib = jnp.where(scatter[:, None], w_sc * c_med, 0.0)
     contrib += jnp.where(diffuse[:, None], w_prev * alb / jnp.pi * E, 0.0)
@@ -858,7 +939,7 @@ def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee=True, be=None, mis=Tru
         ],
         axis=1,
     )
-    return dict(
+    out = dict(
         new,
         o=o_next,
         d=d_next,
@@ -878,6 +959,20 @@ def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee=True, be=None, mis=Tru
         lost=st["lost"] | leak,
         ledger=ledger,
     )
+    if not record:
+        return out
+    # a miss ends at its origin here: the recorder draws it `far` along `d`
+    end = jnp.where((scatter | on_surface)[:, None], jnp.where(scatter[:, None], x_s, x_t), o)
+    end = jnp.where(hit_light[:, None], o + jnp.where(hit_light, tl, 0.0)[:, None] * d, end)
+    code = jnp.select(
+        [scatter, refl_in, exit_, hit_light, miss, diffuse, mirror, refl_out, enter, through],
+        list(range(10)),
+        default=EVENT.index("cut"),
+    )
+    nee_m = dict(g_med, tried=g_med["tried"] & scatter & nee)
+    nee_d = dict(g_dif, tried=g_dif["tried"] & diffuse)
+    rays = dict(o=o, d=d, end=end, code=code, alive=alive, inside=inside, nee_m=nee_m, nee_d=nee_d)
+    return out, rays
 
 
 def _walk(vs: VolScene, prop: Proposal, st: dict, nee: bool = True, mis: bool = True) -> dict:
@@ -952,8 +1047,16 @@ def trace_block(
     if spectral not in ("mis", "separate"):
         raise ValueError(f"spectral must be 'mis' or 'separate', got {spectral!r}")
     mis = spectral == "mis"
+    st, per = _start(vs, prop, camera, pixels, key, spp, K, spectral)
+    st = _walk(vs, prop, st, nee, mis)
+    return _finish(st, pixels.shape[0], spp, per, K, prop)
+
+
+def _start(vs: VolScene, prop: Proposal, camera, pixels, key, spp: int, K: int, spectral: str):
+    """The walkers of `pixels` at the camera: `(state, walkers per camera sample)`; walker
+    `(p spp + s) per + c` is pixel `p`'s sample `s` (channel `c` with `separate`)."""
+    mis = spectral == "mis"
     P = pixels.shape[0]
-    Mt = vs.n_materials
     k_cam, k_walk = jax.random.split(key)
     o, d = camera_rays(camera, pixels, stratified_2d(k_cam, spp, (P,)))  # (P, S, 3)
     per = 1 if mis else 3  # walkers per camera sample
@@ -965,7 +1068,12 @@ def trace_block(
         hero = (_pcg(seed ^ jnp.uint32(0x68E31DA4)) % jnp.uint32(3)).astype(jnp.int32)
     else:
         hero = jnp.tile(jnp.arange(3, dtype=jnp.int32), P * spp)
-    st = _walk(vs, prop, _init_state(o, d, hero, K, Mt, seed), nee, mis)
+    return _init_state(o, d, hero, K, vs.n_materials, seed), per
+
+
+def _finish(st, P: int, spp: int, per: int, K: int, prop: Proposal):
+    """`(base, terms, stats)` of walked walkers (`trace_block`)."""
+    Mt = st["n"].shape[-1]
     Sw = spp * per  # walkers per pixel
     base = st["base"].reshape(P, Sw, 3).sum(axis=1) / spp
     w = (st["wsum"] / (K * spp))[:, None, None] * st["res_a"]  # (W, K, 3)
@@ -975,6 +1083,7 @@ def trace_block(
         st["res_L"].reshape(P, Sw * K, Mt),
         prop.sigma_s,
         prop.sigma_t,
+        K,
     )
     stats = WalkStats(
         events=jnp.sum(st["events"]),
@@ -986,6 +1095,26 @@ def trace_block(
     return base, terms, stats
 
 
+_record_step = jax.jit(functools.partial(_step, record=True), static_argnums=(5, 7))
+
+
+def _record_walk(vs: VolScene, prop: Proposal, st: dict, sel, sample, nee, mis, rec) -> dict:
+    """Walk the walkers `sel` (indices; `sample`: their camera sample) one compiled event at
+    a time, handing each event's rays to `rec.walk`: the same walks as `_walk` (every
+    walker draws its own random numbers by event), for the ray tree."""
+    K = st["res_n"].shape[1]
+    be = _beam_entry(vs) if vs.lights.n_beam else None
+    sub = {f: v[sel] for f, v in st.items()}
+    for i in range(MAX_EVENTS):
+        if not bool(jnp.any(sub["alive"])):
+            break
+        u = _uniforms(sub["seed"], jnp.int32(i), _NU + 2 * K).astype(sub["o"].dtype)
+        sub, rays = _record_step(vs, prop, sub, u[:, :_NU], u[:, _NU:], nee, be, mis)
+        rays = jax.tree_util.tree_map(np.asarray, rays)
+        rec.walk(i, dict(rays, sample=np.asarray(sample)))
+    return {f: v.at[sel].set(sub[f]) for f, v in st.items()}
+
+
 class Volumetric(TransportMethod):
     """The volumetric transport of one scene: one phase (every pixel's walks, whose
     records exist for the pixels some path of which entered a medium). Static
@@ -995,6 +1124,7 @@ class Volumetric(TransportMethod):
 
     name = "volumetric"
     two_phase = False
+    reweighted = True
 
     def __init__(self, arrays):
         self.vs = VolScene.from_arrays(arrays)
@@ -1021,11 +1151,15 @@ class Volumetric(TransportMethod):
         Mt = len(self.materials)
         R = self.spp * self.records * (3 if self.spectral == "separate" else 1)
         z = jnp.zeros((0, R, Mt))
-        return VolumetricTerms(jnp.zeros((3, 0, R)), z, z, jnp.zeros((Mt, 3)), jnp.zeros((Mt, 3)))
+        return VolumetricTerms(
+            jnp.zeros((3, 0, R)), z, z, jnp.zeros((Mt, 3)), jnp.zeros((Mt, 3)), self.records
+        )
 
     def trace_block(self, arrays, state, pixels, key, rec: Recorder = NO_RECORD) -> Block:
         vs = self.vs.with_arrays(arrays)
         prop = Proposal.from_media(arrays.media)
+        if rec.active:
+            return self._recorded(vs, prop, arrays, pixels, key, rec)
         base, terms, _ = trace_block(
             vs,
             prop,
@@ -1037,5 +1171,21 @@ class Volumetric(TransportMethod):
             nee=self.nee,
             spectral=self.spectral,
         )
+        needs = jnp.any(terms.w > 0, axis=(0, 2))
+        return Block(base, needs, terms)
+
+    def _recorded(self, vs, prop, arrays, pixels, key, rec: Recorder) -> Block:
+        """`trace_block` with the walks of the recorder's rows (`rec.rows`: pixel samples of
+        the block; all when it has none) stepped one event at a time and recorded: the other
+        walkers do not move, so their pixels come out black."""
+        spp, K = self.spp, self.records
+        st, per = _start(vs, prop, arrays.camera, pixels, key, spp, K, self.spectral)
+        W = st["alive"].shape[0]
+        rows = getattr(rec, "rows", None)
+        want = np.ones(W, bool) if rows is None else np.repeat(np.asarray(rows, bool), per)
+        sel = np.flatnonzero(want)
+        mis = self.spectral == "mis"
+        st = _record_walk(vs, prop, st, jnp.asarray(sel), (sel // per) % spp, self.nee, mis, rec)
+        base, terms, _ = _finish(st, pixels.shape[0], spp, per, K, prop)
         needs = jnp.any(terms.w > 0, axis=(0, 2))
         return Block(base, needs, terms)
