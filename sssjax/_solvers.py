@@ -29,7 +29,7 @@ import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int, PyTree, Scalar
 
-__all__ = ["NormalLevenbergMarquardt", "NormalGaussNewton", "gauss_newton_model"]
+__all__ = ["NormalLevenbergMarquardt", "NormalGaussNewton"]
 
 
 class _State(eqx.Module):
@@ -45,29 +45,14 @@ class _State(eqx.Module):
     num_accepted_steps: Int[Array, ""]
 
 
-def gauss_newton_model(
-    fn, y, args, decorrelated: bool = False
-) -> tuple[optx.FunctionInfo.EvalGradHessian, Any]:
-    """The Gauss-Newton model of `0.5 |fn(y)|^2` at `y`, from one forward-mode Jacobian.
-
-    Decorrelated residuals `fn(y) = (r_A, r_B)` (two independent Monte Carlo estimates of
-    the same residuals): the model of `0.5 sum r_A r_B`, gradient
-    `(J_A^T r_B + J_B^T r_A) / 2` and Hessian `(J_A^T J_B + J_B^T J_A) / 2`: unbiased for
-    the noise-free `J^T J`, where `J_A^T J_A` would add the Jacobian's own variance (and so
-    shrink the steps and the error bars). Not always positive definite: the solver using
-    it must guard its eigenvalues."""
+def _model(fn, y, args) -> tuple[optx.FunctionInfo.EvalGradHessian, Any]:
+    """The Gauss-Newton model of `0.5 |fn(y)|^2` at `y`, from one forward-mode Jacobian."""
 
     def res(_y):
         r, aux = fn(_y, args)
         return r.reshape(-1), (r, aux)
 
     J, (r, aux) = jax.jacfwd(res, has_aux=True)(y)  # (m, n): n forward-mode products
-    if decorrelated:
-        m = J.shape[0] // 2
-        Ja, Jb, ra, rb = J[:m], J[m:], r[0].reshape(-1), r[1].reshape(-1)
-        H = lx.MatrixLinearOperator(0.5 * (Ja.T @ Jb + Jb.T @ Ja), lx.symmetric_tag)
-        g = 0.5 * (Ja.T @ rb + Jb.T @ ra)
-        return optx.FunctionInfo.EvalGradHessian(0.5 * jnp.sum(ra * rb), g, H), aux
     r = r.reshape(-1)
     H = lx.MatrixLinearOperator(J.T @ J, lx.symmetric_tag)
     return optx.FunctionInfo.EvalGradHessian(0.5 * jnp.sum(r * r), J.T @ r, H), aux
@@ -116,7 +101,7 @@ class _NormalSolver(optx.AbstractLeastSquaresSolver):
         )
 
         def accepted(_):
-            model, aux = gauss_newton_model(fn, state.y_eval, args)
+            model, aux = _model(fn, state.y_eval, args)
             y_diff = state.y_eval - y
             f_diff = model.f - state.f_info.f
             # optimistix's Cauchy test, on the loss (as its minimisers do) rather than on

@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from .raytree import COLORS as _RT_COLORS
 from .scene import Camera, Scene, dump_scene, load_scene
 
 __all__ = [
@@ -55,13 +56,7 @@ __all__ = [
 # Ray-tree kinds (the order of `RayTree.KINDS`) and their colours (sRGB 0-255), the same as
 # in the pictures of `sssjax raytree`.
 RAY_COLORS: dict[str, tuple[int, int, int]] = {
-    "camera": (255, 255, 255),
-    "reflected": (228, 26, 28),
-    "shadow": (77, 175, 74),
-    "shadow_blocked": (30, 107, 44),
-    "ss_refracted": (31, 120, 255),
-    "ss_light": (116, 169, 255),
-    "dipole": (48, 80, 192),
+    k: (int(h[1:3], 16), int(h[3:5], 16), int(h[5:7], 16)) for k, h in _RT_COLORS.items()
 }
 POINT_COLOR = (0, 229, 255)  # dipole sample points
 POINT_MIN_WEIGHT = 0.01  # points lighter than this fraction of the heaviest are not drawn
@@ -73,6 +68,10 @@ _RAY_LABELS = {
     "ss_refracted": "single scattering: refracted path",
     "ss_light": "single scattering: light connection",
     "dipole": "dipole sample rays",
+    "walk": "volumetric walk (inside)",
+    "exit": "walk leaving the object",
+    "bounce": "path continuing outside",
+    "connection": "next-event connection",
 }
 _LIGHT_RGB = (255, 244, 214)  # display colour of emitters
 _SCENE_CAMERA_RGB = (40, 40, 40)

@@ -11,7 +11,7 @@ import numpy as np
 
 from ._problem import FitProblem, residual_args, residual_fn
 from ._result import FitResult
-from ._solve import Outcome, cross_jtj, jacobian, loss_at
+from ._solve import Outcome, jacobian, loss_at
 
 __all__ = ["report"]
 
@@ -33,15 +33,14 @@ def _eta_column(problem: FitProblem, out: Outcome, y) -> np.ndarray:
     return (cols[0] - cols[1]) / (2 * h)
 
 
-def covariance(J: np.ndarray, r: np.ndarray, JtJ=None) -> tuple[np.ndarray, list[str]]:
+def covariance(J: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, list[str]]:
     """The covariance of the coordinates from the Jacobian `J` and residuals `r`:
-    `s^2 (J^T J)^-1`, each variance raised to the sandwich estimate's where that is larger;
-    `JtJ` replaces `J^T J` (for Monte Carlo Jacobians: `cross_jtj`).
+    `s^2 (J^T J)^-1`, each variance raised to the sandwich estimate's where that is larger.
     **Returns:** `(cov, warnings)`; an infinite covariance when `J^T J` is singular."""
     warnings = []
     dof = max(r.size - J.shape[1], 1)
     s2 = float(r @ r) / dof
-    JtJ = J.T @ J if JtJ is None else JtJ
+    JtJ = J.T @ J
     try:
         cond = np.linalg.cond(JtJ)
         inv = np.linalg.inv(JtJ)
@@ -160,14 +159,11 @@ def report(problem: FitProblem, out: Outcome, t_start: float) -> FitResult:
     names, tanh_idx = problem.names, problem.tanh_idx
     J, r = jacobian(problem, y, run.args)
     J, r = np.asarray(J, dtype=np.float64), np.asarray(r, dtype=np.float64)
-    # Monte Carlo terms (a re-weighting transport): J^T J from two independent halves
-    JtJ = cross_jtj(problem, y, run.args) if run.args.halves is not None else None
     if out.eta is not None:
         J = np.concatenate([J, _eta_column(problem, out, y)[:, None]], axis=1)
-        JtJ = None  # (the eta column has no halves)
         names = names + [problem.eta.name]
         tanh_idx = np.append(tanh_idx, False)
-    cov_log, warnings = covariance(J, r, JtJ)
+    cov_log, warnings = covariance(J, r)
     vals = problem.values(y)
     # d value / d y: value for log coordinates, 1 - g^2 for atanh
     dval = np.where(tanh_idx[: y.size], 1.0 - vals**2, vals)

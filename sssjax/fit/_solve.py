@@ -15,12 +15,11 @@ import numpy as np
 import optimistix as optx
 
 from .._progress import Progress
-from .._solvers import gauss_newton_model
 from ._options import SOLVERS, WEIGHTINGS
 from ._problem import ETA_RANGE, Args, FitProblem, TraceData, residual_fn
 from ._result import FitError
 
-__all__ = ["Run", "Outcome", "solve", "run", "loss_at", "jacobian", "cross_jtj"]
+__all__ = ["Run", "Outcome", "solve", "run", "loss_at", "jacobian"]
 
 
 @dataclasses.dataclass
@@ -59,45 +58,29 @@ def _floored_inverse(H):
     return (V / lam) @ V.T
 
 
-def _both(residuals):
-    def both(yy, a):
-        r = residuals(yy, a)
-        return r, r
-
-    return both
-
-
 @eqx.filter_jit
 def _decorrelated_step(residuals, y, args):
-    """The Gauss-Newton step of `0.5 sum r_A r_B` at `y` (the residuals of two independent
-    halves of the samples, `residual_fn(decorrelated=True)`, and the cross-product Hessian
-    `sssjax._solvers.gauss_newton_model`), the coordinates' standard errors from it, and
-    the plain loss of the whole."""
-    model, r = gauss_newton_model(_both(residuals), y, args, True)
-    H_inv = _floored_inverse(model.hessian.as_matrix())
-    dy = -H_inv @ model.grad
-    rbar = 0.5 * (r[0] + r[1])  # the residuals of the whole (the halves' mean)
-    m, n = rbar.size, H_inv.shape[0]
+    """The Gauss-Newton step of `0.5 sum r_A r_B` at `y`, from the residuals of two
+    independent halves of the samples (`residual_fn(decorrelated=True)`): gradient
+    `(J_A^T r_B + J_B^T r_A) / 2` and Hessian `(J_A^T J_B + J_B^T J_A) / 2`, unbiased for
+    the noise-free `J^T J` (one estimate's `J^T J` adds the Jacobian's own variance, which
+    shortens every step). **Returns:** the step, the coordinates' standard errors (from
+    `J^T J` as usual) and the plain loss of the whole."""
+
+    def res(yy):
+        r = residuals(yy, args)
+        return r, r
+
+    J, r = jax.jacfwd(res, has_aux=True)(y)  # (2, m, n), (2, m)
+    Ja, Jb, ra, rb = J[0], J[1], r[0], r[1]
+    H = 0.5 * (Ja.T @ Jb + Jb.T @ Ja)
+    dy = -_floored_inverse(H) @ (0.5 * (Ja.T @ rb + Jb.T @ ra))
+    rbar = 0.5 * (ra + rb)  # the residuals of the whole (the halves' mean)
+    Jbar = 0.5 * (Ja + Jb)
+    m, n = rbar.size, H.shape[0]
     s2 = jnp.sum(rbar**2) / jnp.maximum(m - n, 1)
-    return dy, jnp.sqrt(jnp.diag(H_inv) * s2), 0.5 * jnp.sum(rbar**2)
-
-
-def cross_jtj(problem: FitProblem, y, args: Args) -> np.ndarray:
-    """`J^T J` of samples from two independent halves' Jacobians, `(J_A^T J_B + J_B^T J_A)
-    / 2` with its eigenvalues' magnitudes floored: free of the Jacobian's own noise, which
-    `J^T J` of one estimate adds to the information (and so shrinks the error bars)."""
-    residuals = residual_fn(problem.layout, problem.options.loss, True)
-    model, _ = _cross_model(residuals, y, args)
-    H = np.asarray(model, dtype=np.float64)
-    lam, V = np.linalg.eigh(0.5 * (H + H.T))
-    lam = np.maximum(np.abs(lam), 1e-6 * np.max(np.abs(lam)))
-    return (V * lam) @ V.T
-
-
-@eqx.filter_jit
-def _cross_model(residuals, y, args):
-    model, r = gauss_newton_model(_both(residuals), y, args, True)
-    return model.hessian.as_matrix(), r
+    cov = s2 * _floored_inverse(Jbar.T @ Jbar)
+    return dy, jnp.sqrt(jnp.diag(cov)), 0.5 * jnp.sum(rbar**2)
 
 
 @eqx.filter_jit
@@ -248,6 +231,19 @@ def search_eta(problem: FitProblem, keys, y0):
     return best["eta"], tried, best["y"], first["loss0"], (lo, hi), best["traced"]
 
 
+def _rounds_sd(rounds: list) -> np.ndarray | None:
+    """The trace-noise error of the rounds' solution (`_retraced_rounds`): each round is a
+    solution on its own trace at nearly the same proposal, so their scatter is the trace
+    noise (the target's own noise, shared by all, is in the statistical error). With four
+    rounds or more the solution is the mean of the later half: the error of that mean."""
+    if len(rounds) < 2:
+        return None
+    if len(rounds) < 4:
+        return 0.5 * np.abs(rounds[-1] - rounds[-2])
+    tail = np.asarray(rounds[len(rounds) // 2 :])
+    return tail.std(axis=0, ddof=1) / np.sqrt(len(tail))
+
+
 def _retraced_rounds(problem: FitProblem, keys, media, r: Run, eta, weights_at=None):
     """A re-weighting transport's fit after the first solve: Gauss-Newton rounds, each on a
     fresh trace with the current solution as the walks' proposal.
@@ -284,6 +280,11 @@ def _retraced_rounds(problem: FitProblem, keys, media, r: Run, eta, weights_at=N
             )
         dy, sd, loss = _decorrelated_step(residuals, y, args)
         dy = np.asarray(dy, np.float64)
+        if not np.all(np.isfinite(dy)):
+            raise FitError(
+                "the re-traced Gauss-Newton step is not finite (a trace with no signal in "
+                "the fitted pixels?): check the target and the mask"
+            )
         big = np.max(np.abs(dy))
         if big > 0.5:  # far from the solution: a shorter step in the same direction
             dy *= 0.5 / big
@@ -338,9 +339,7 @@ def run(problem: FitProblem) -> Outcome:
         out.data, out.run, rounds = _retraced_rounds(
             problem, keys, media, r, out.eta, weights_at=r.y if refit else None
         )
-        if problem.options.refine and len(rounds) >= 2:
-            # the last two rounds are single-trace solutions at nearly the same proposal
-            out.trace_sd = 0.5 * np.abs(rounds[-1] - rounds[-2])
+        out.trace_sd = _rounds_sd(rounds)
         return out
     out.data = data
     if refit:
