@@ -1,10 +1,12 @@
 """How much memory and disk a render needs, estimated before it starts.
 
 `estimate_memory(scene)` adds up what a render holds at its peak, from the scene's settings
-alone (nothing is allocated): the image and the writers' working copies, which grow with the
-pixel count, and the tiles in flight and the irradiance clouds, which do not. `check_memory`
-turns an estimate beyond the memory available into one line, before anything is allocated;
-`check_disk` does the same for the output files. The figures are measured on the 2-core CPU
+alone (nothing is allocated): the image, the one array that grows with the pixel count (12
+bytes a pixel: camera rays are made per tile inside the transports, and the writers work a
+strip of rows at a time), and the tiles in flight, the writers' strip and the irradiance
+clouds, which do not grow with it. `check_memory` turns an estimate beyond the memory
+available into one line, before anything is allocated; `check_disk` does the same for the
+output files. The figures are measured on the 2-core CPU
 (see the constants); they are estimates to refuse the impossible, not a budget to the byte.
 """
 
@@ -30,8 +32,11 @@ __all__ = [
 RUNTIME_BYTES = 1.2e9  # JAX, XLA and the compiled programs (peak RSS of a 64x64 render)
 BYTES_PER_SAMPLE = 2000  # per camera sample in flight (64x64 at 256 spp: +470 MB over 16 spp)
 BYTES_PER_PIXEL_IMAGE = 12  # the (H, W, 3) float32 image (24 under x64)
-BYTES_PER_PIXEL_PNG = 148  # write_image's float64 tone-mapping copies for an 8-bit file
-BYTES_PER_PIXEL_EXR = 16  # its float32 copy for a float file
+# write_image converts and writes a strip of rows at a time: its working copies are those of
+# one strip of STRIP_PIXELS pixels, whatever the image size
+STRIP_PIXELS = 1 << 16
+BYTES_PER_PIXEL_PNG = 128  # per strip pixel: the float64 tone-mapping copies of an 8-bit file
+BYTES_PER_PIXEL_EXR = 16  # per strip pixel: the float32 copy of a float file (4 for float32)
 BYTES_PER_CLOUD_POINT = 52  # one irradiance-cloud point (position, normal, irradiance, ...)
 BYTES_PER_GATHER_PAIR = 16  # one (pixel, cloud point) distance of a block's gather
 # a full `Transport` (trace, fit) keeps per translucent pixel its distance histogram
@@ -58,7 +63,7 @@ class MemoryEstimate:
     """Peak bytes of a render (or trace), by part. `total` is their sum."""
 
     runtime: float  # JAX, XLA, compiled programs
-    image: float  # the image and the writers' copies: grows with width x height
+    image: float  # the image (grows with width x height) and the writers' strip (does not)
     tiles: float  # camera samples in flight (one tile per device) and a block's gather
     cloud: float  # the irradiance clouds of the translucent objects
     transport: float  # a stored `Transport` (trace, fit; 0 for a render)
@@ -95,7 +100,8 @@ def estimate_memory(
     cam, rs, sss = scene.camera, scene.render, scene.sss
     n_pix = cam.width * cam.height
     block = min(rs.tile**2, n_pix)
-    image = n_pix * (BYTES_PER_PIXEL_IMAGE + (BYTES_PER_PIXEL_PNG if png else BYTES_PER_PIXEL_EXR))
+    writer = min(n_pix, STRIP_PIXELS) * (BYTES_PER_PIXEL_PNG if png else BYTES_PER_PIXEL_EXR)
+    image = n_pix * BYTES_PER_PIXEL_IMAGE + writer
     n_tobj = sum(1 for s in scene.shapes if scene.materials[s.material].type == "translucent")
     sss_on = sss.enabled and n_tobj > 0
     tiles = devices * block * rs.spp * BYTES_PER_SAMPLE

@@ -24,6 +24,7 @@ import numpy as np
 import OpenImageIO as oiio
 from jaxtyping import ArrayLike
 
+from ._budget import STRIP_PIXELS  # pixels per strip of rows that `write_image` writes
 from ._files import atomic
 
 __all__ = [
@@ -202,7 +203,8 @@ def write_image(
 
     The file is written under a temporary name in the same folder and then renamed
     (`sssjax._files.atomic`), so a failed or interrupted write leaves the old file intact and
-    no partial file behind.
+    no partial file behind. The image is converted and written a strip of rows
+    (`STRIP_PIXELS` pixels) at a time, so the writer's working memory does not grow with it.
 
     **Returns:** the `Path` written.
 
@@ -227,23 +229,37 @@ def write_image(
         raise ValueError(f"{path}: image must have shape (H, W, 3), got {img.shape}")
     if img.dtype.kind not in "biuf":
         raise ValueError(f"{path}: image must be numeric, got dtype {img.dtype}")
-    img = img.astype(np.float32) if ext in FLOAT_EXTENSIONS else img.astype(np.float64)
-    bad = ~np.all(np.isfinite(img), axis=-1)
-    if bad.any():
+    height, width = img.shape[:2]
+    # the image is checked, converted and written a strip of rows at a time: the working
+    # copies are those of one strip (`STRIP_PIXELS`), whatever the image size
+    rows = max(1, STRIP_PIXELS // width)
+    strips = [(y, min(y + rows, height)) for y in range(0, height, rows)]
+    dt = np.float32 if ext in FLOAT_EXTENSIONS else np.float64  # what is finite once written
+
+    def n_bad(y0: int, y1: int) -> int:
+        return int((~np.all(np.isfinite(np.asarray(img[y0:y1], dtype=dt)), axis=-1)).sum())
+
+    bad = sum(n_bad(y0, y1) for y0, y1 in strips)
+    if bad:
         raise ValueError(
-            f"{path}: refusing to write {int(bad.sum())} of {bad.size} pixels with NaN or inf"
+            f"{path}: refusing to write {bad} of {height * width} pixels with NaN or inf"
         )
 
-    height, width = img.shape[:2]
     if ext in FLOAT_EXTENSIONS:
         spec = oiio.ImageSpec(width, height, 3, "float")
         spec.attribute("oiio:ColorSpace", _LINEAR_COLORSPACE)
-        pixels = np.ascontiguousarray(img)
+
+        def strip(y0: int, y1: int) -> np.ndarray:
+            return np.ascontiguousarray(img[y0:y1], dtype=np.float32)
+
     else:
-        display = srgb_encode(_tonemap(img, tonemap_mode, exposure))
-        pixels = np.ascontiguousarray(np.clip(np.rint(display * 255.0), 0, 255).astype(np.uint8))
         spec = oiio.ImageSpec(width, height, 3, "uint8")
         spec.attribute("oiio:ColorSpace", _SRGB_COLORSPACE)
+
+        def strip(y0: int, y1: int) -> np.ndarray:
+            display = srgb_encode(_tonemap(img[y0:y1], tonemap_mode, exposure))
+            return np.ascontiguousarray(np.clip(np.rint(display * 255.0), 0, 255).astype(np.uint8))
+
     if ext in (".exr", ".png"):
         for name, value in _metadata_attributes(metadata).items():
             spec.attribute(name, value)
@@ -255,7 +271,8 @@ def write_image(
         if out is None:
             raise OSError(f"{path}: cannot write: {_oiio_error()}")
         ok = out.open(str(tmp), spec)
-        ok = ok and out.write_image(pixels)
+        for y0, y1 in strips:
+            ok = ok and out.write_scanlines(y0, y1, 0, strip(y0, y1))
         ok = out.close() and ok
         if not ok:
             raise OSError(f"{path}: cannot write: {_oiio_error(out)}")

@@ -280,7 +280,7 @@ _CACHE: list[tuple[Scene, tuple, Renderer]] = []
 
 
 def renderer_for(scene: Scene, devices=None) -> Renderer:
-    """The compiled `Renderer` of `scene`, reused across calls (a few most recent scenes).
+    """The compiled `Renderer` of `scene`, reused across calls (the 8 most recent scenes).
 
     Scenes are immutable, so the same object always means the same renderer; `with_settings`
     returns a new scene (and so a new renderer)."""
@@ -290,7 +290,7 @@ def renderer_for(scene: Scene, devices=None) -> Renderer:
             return r
     r = Renderer(scene, devs)
     _CACHE.insert(0, (scene, devs, r))
-    del _CACHE[4:]
+    del _CACHE[8:]
     return r
 
 

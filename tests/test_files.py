@@ -100,14 +100,15 @@ def test_interrupted_image_write_keeps_the_old_image(tmp_path, monkeypatch):
     before = p.read_bytes()
     real_create = oiio.ImageOutput.create
 
-    class Dying:  # OpenImageIO's writer, killed after the header
+    class Dying:  # OpenImageIO's writer, killed after the header and a first strip of rows
         def __init__(self, path):
             self.out = real_create(path)
 
         def open(self, path, spec):
             return self.out.open(path, spec)
 
-        def write_image(self, pixels):
+        def write_scanlines(self, y0, y1, z, pixels):
+            self.out.write_scanlines(y0, y1, z, pixels)
             raise KeyboardInterrupt
 
         def close(self):

@@ -68,6 +68,12 @@ def test_solver_jacobian_matches_central_differences(x64):
 
 
 @pytest.fixture(scope="module")
+def cube():
+    """`small("marble")`, one object for the tests that fit it: one compiled renderer."""
+    return small("marble")
+
+
+@pytest.fixture(scope="module")
 def scene_and_target():
     scene = small("marble").with_settings(width=16, height=16, spp=1, sss_cloud_size=256)
     return scene, sssjax.render(scene, 0)
@@ -127,6 +133,7 @@ width = 16
 height = 16
 spp = 1
 sss_cloud_size = 256
+light_samples = 2
 [init]
 "marble.sigma_a" = [0.0042, 0.0082, 0.0142]
 [solver]
@@ -158,10 +165,10 @@ def test_fit_file_typo(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_robust_loss_ignores_outlier_pixels():
+def test_robust_loss_ignores_outlier_pixels(cube):
     """2% of the translucent pixels replaced by bright outliers (a highlight, dust): the plain
     fit is dragged off, the Cauchy fit still recovers the coefficients."""
-    scene = small("marble")
+    scene = cube  # the scene (and compiled tracer) of the other fit tests
     target = sssjax.render(scene, 0)
     tr = sssjax.trace(scene, 0)
     pix = np.asarray(tr.translucent_pixels())
@@ -183,10 +190,10 @@ def test_robust_loss_ignores_outlier_pixels():
     assert err(plain) > 5 * err(robust)
 
 
-def test_free_exposure_is_recovered_with_the_coefficients():
+def test_free_exposure_is_recovered_with_the_coefficients(cube):
     """An uncalibrated target (the render x 1.7): the exposure comes out as 1.7 and the
     coefficients as the truth (same seed, so the minimum is exact)."""
-    scene = small("marble")
+    scene = cube  # the scene (and compiled tracer) of the other fit tests
     target = np.asarray(sssjax.render(scene, 0)) * 1.7
     true = scene.media()["marble"]
     init = {"sigma_a": np.asarray(true.sigma_a) * 1.5, "exposure": 1.0}
@@ -253,7 +260,14 @@ def two_lights(scene, factor=1.0):
     return scene.replace(lights=(*scene.lights, lamp))
 
 
-def test_light_groups_add_up_to_the_scene():
+@pytest.fixture(scope="module")
+def two_light_scene():
+    """`small("marble")` with a second light: one object, so that its tests share one
+    compiled renderer."""
+    return two_lights(small("marble"))
+
+
+def test_light_groups_add_up_to_the_scene(two_light_scene):
     """The fit traces each free light alone (the others dark, by a factor of the compiled
     tracer): that must equal tracing a scene with the other light switched off, and by
     linearity in emission the parts must sum to the full scene's, sample for sample."""
@@ -263,8 +277,7 @@ def test_light_groups_add_up_to_the_scene():
     from sssjax.render import renderer_for
     from sssjax.shade import shade
 
-    # the scene of the next test (its compiled tracer is shared), in float32
-    scene = two_lights(small("marble"))
+    scene = two_light_scene  # the scene of the next test (its compiled tracer is shared)
     media = scene.media()
     r = renderer_for(scene)
     full = np.asarray(shade(r.trace(4, False), media))
@@ -281,10 +294,10 @@ def test_light_groups_add_up_to_the_scene():
     np.testing.assert_allclose(parts[0], lamp_only, rtol=1e-5, atol=1e-6 * full.max())
 
 
-def test_free_light_intensity_is_recovered_with_the_coefficients():
+def test_free_light_intensity_is_recovered_with_the_coefficients(two_light_scene):
     """A target whose lamp is 1.6x brighter than the scene says: the fit with `lights.1`
     free finds 1.6 and the coefficients (same seed, so the minimum is exact)."""
-    scene = two_lights(small("marble"))
+    scene = two_light_scene
     truth = two_lights(small("marble"), 1.6)
     target = np.asarray(sssjax.render(truth, 0))
     true = scene.media()["marble"]
@@ -333,12 +346,12 @@ def with_eta(scene, eta):
     return scene.replace(materials=mats)
 
 
-def test_trace_at_another_eta_equals_the_scene_with_that_eta():
+def test_trace_at_another_eta_equals_the_scene_with_that_eta(scene_and_target):
     """`eta` is an argument of the compiled tracer (a fit of eta re-traces without
     recompiling): tracing at eta = 1.45 must give the transport of a scene built with 1.45."""
     from sssjax.render import renderer_for
 
-    scene = small("marble").with_settings(width=16, height=16, sss_cloud_size=512)
+    scene, _ = scene_and_target  # its compiled tracer is shared
     other = with_eta(scene, 1.45)
     a = renderer_for(scene).trace(0, False, {"marble": 1.45})
     b = sssjax.trace(other, 0)
@@ -351,10 +364,10 @@ def test_trace_at_another_eta_equals_the_scene_with_that_eta():
 
 
 @pytest.mark.slow
-def test_free_eta_is_recovered_with_the_coefficients():
+def test_free_eta_is_recovered_with_the_coefficients(cube):
     """A target rendered with eta = 1.45 fitted from eta = 1.3 and coefficients x2 / x0.5
     (same seed): the Brent search over re-traces finds 1.45, and the coefficients."""
-    scene = small("marble").with_settings(width=24, height=24)
+    scene = cube  # the scene (and compiled tracer) of the other fit tests
     target = np.asarray(sssjax.render(with_eta(scene, 1.45), 0))
     true = scene.media()["marble"]
     init = {"sigma_a": np.asarray(true.sigma_a) * 2, "sigma_s": np.asarray(true.sigma_s) / 2}
@@ -444,7 +457,7 @@ def test_default_mask_leaves_out_the_mirrored_lamp():
     assert left.reshape(-1)[lamp].all() and left.sum() == len(pix) - len(d.pix)
 
 
-def test_traces_average_into_one_model():
+def test_traces_average_into_one_model(cube):
     """`traces = K` fits the mean of the K traces' models on the pixels they share (one trace
     with K x the samples), by the image's linearity in the transport: `_model` of the
     combined args equals the mean of the single-trace models at any coefficients."""
@@ -456,7 +469,7 @@ def test_traces_average_into_one_model():
     from sssjax.fit._problem import residual_args, trace_data
     from sssjax.render import as_key, renderer_for
 
-    scene = small("marble")  # the scene (and compiled tracer) of the other fit tests
+    scene = cube  # the scene (and compiled tracer) of the other fit tests
     target = np.asarray(sssjax.render(scene, 5))
     media = scene.media()
     r = renderer_for(scene)
