@@ -429,7 +429,8 @@ def test_thick_slab_under_a_beam_reproduces_the_independent_radiance_profile(
     yy, xx = np.mgrid[0:N, 0:N]
     r = np.hypot((xx + 0.5) * px - view / 2, (yy + 0.5) * px - view / 2).ravel()
     edges = np.array([0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.4, 1.8, 2.4, 3.0, 3.6])
-    ref = radiance_profile(sigma_a, sigma_s, g, eta, edges, n_photons=400_000, seed=1)
+    # the walk's per-bin error (15-40 %) dominates: 60k photons (2-3 %) keep the test's power
+    ref = radiance_profile(sigma_a, sigma_s, g, eta, edges, n_photons=60_000, seed=1)
     v = img.reshape(-1, 3).mean(1)  # a grey medium: the three channels are independent walks
     z = []
     for i in range(1, len(edges) - 1):
