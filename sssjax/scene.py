@@ -678,6 +678,8 @@ def _parse_camera(file: str, raw: Any) -> Camera:
     return Camera(**cam)
 
 
+# 150+ lines: the loader reads the sections in file order, each a short block over the
+# field tables (`_SHAPES`, `_LIGHTS`, `_MATERIALS`); the checks themselves live in `_fields`.
 def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = None) -> Scene:
     """Load and validate a scene.
 

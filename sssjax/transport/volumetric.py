@@ -790,6 +790,9 @@ def _safe_log(x):
     return jnp.where(pos, jnp.log(jnp.where(pos, x, 1.0)), -jnp.inf)
 
 
+# Over 150 lines by reason: one event of the walk (free flight, surface hit, next-event
+# estimation, reservoir deposit, roulette) reads and writes the same ~20 walker arrays in
+# one compiled body; split into functions they would pass that state back and forth whole.
 def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee=True, be=None, mis=True, record=False):
     """One event for every walker: a free flight inside a medium, or a hit outside.
     `be`: the scene's beams as they enter media (`_beam_entry`), or None without beams.
