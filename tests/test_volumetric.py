@@ -194,11 +194,15 @@ def _furnace(sigma_a, sigma_s, g, eta, width=16, sky="background"):
     )
 
 
-@pytest.mark.parametrize("g,eta", [(0.0, 1.5), (0.7, 1.2)])
-def test_white_furnace_non_absorbing_objects_are_invisible(g, eta):
+# Non-absorbing walks are long (events grow as (size sigma_s)^2 / (1 - g)): the forward-
+# scattering case is kept to a smaller sigma_s, so that it does not dominate the suite.
+@pytest.mark.parametrize(
+    "g,eta,sigma_s", [(0.0, 1.5, [0.3, 1.0, 3.0]), (0.7, 1.2, [0.2, 0.5, 1.2])]
+)
+def test_white_furnace_non_absorbing_objects_are_invisible(g, eta, sigma_s):
     """sigma_a = 0 (any sigma_s, chromatic), albedo-1 diffuse, uniform environment: every
     pixel is the environment's radiance; every walker's weight escapes (bookkeeping)."""
-    sc = _furnace(0.0, [0.3, 1.0, 3.0], g, eta)
+    sc = _furnace(0.0, sigma_s, g, eta)
     img, _, _, tot = walk(sc, 4, 0, spectral="separate")  # each channel's own walkers: exact
     np.testing.assert_allclose(img, 1.0, atol=2e-5)
     assert abs(tot["escaped"] - tot["walkers"]) < 1e-4 * tot["walkers"]
@@ -362,7 +366,7 @@ def test_next_event_estimation_through_the_boundary_agrees_with_random_exits():
     estimators of one integral, chromatic media, several objects, a floor in their light."""
     sc = _lit_scene()
     runs = {
-        nee: np.stack([walk(sc, 16, 10 * s + nee, nee=nee)[0] for s in range(4)])
+        nee: np.stack([walk(sc, 8, 10 * s + nee, nee=nee)[0] for s in range(4)])
         for nee in (True, False)
     }
     A, B = _blocks(runs[True]), _blocks(runs[False])
@@ -473,9 +477,9 @@ def test_reweighted_trace_equals_a_fresh_trace_and_its_sample_size_falls_away_fr
     far = _scaled(media, 1.5)
     rew, fresh = [], []
     for s in range(3):
-        _, base, terms, _ = walk(sc, 16, 100 + s)
+        _, base, terms, _ = walk(sc, 8, 100 + s)
         rew.append((base + np.asarray(V.shade_terms(terms, far))).reshape(16, 16, 3))
-        fresh.append(walk(sc, 16, 200 + s, media=far)[0])
+        fresh.append(walk(sc, 8, 200 + s, media=far)[0])
         if s == 0:
             ratios = []
             for f in (1.0, 1.2, 1.5, 2.5):
