@@ -5,7 +5,8 @@
 The three scenes of `benchmarks/vs_mitsuba.py` (a marble cube, a skim-milk cylinder, a ketchup
 sphere behind eta 1.3 on a grey floor under one area light) rendered with `[sss] transport =
 "diffusion"` (the dipole, direct light only, opaque shadows) and `"volumetric"` (exact random
-walks, `tests/test_volumetric.py`, agreeing with Mitsuba 3 within noise). Prints, per scene and
+walks, tested against closed forms and an independent photon tracer in
+`tests/test_volumetric.py`; `benchmarks/vs_mitsuba.py` compares it with Mitsuba 3). Prints, per scene and
 region (the object; the floor within 40 mm of it: its shadow and the light it sends down), the
 ratio diffusion / volumetric per channel with its standard error (from independent volumetric
 seeds), and the wall time of each render; writes the table as markdown to `--out`.
