@@ -395,7 +395,6 @@ def _check(name, value, ok, what):
 
 # `simulate` is long for its signature and documented arguments (about 55 lines); its body,
 # checks then the batched walk loop, reads best in one piece.
-# 150+ lines, most of them the docstring and argument checks of the public entry point.
 def simulate(
     sigma_a: float,
     sigma_s: float,

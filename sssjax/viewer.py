@@ -240,9 +240,6 @@ def save_paths(base: str | Path, protect=()) -> dict[str, Path]:
 # buttons (`use_view`, `render`, `save`, `show_raytree`, `set_opacity`, each tested without a
 # browser) over one shared state of scene nodes and controls; split, that state would be
 # passed between classes that are only ever used together.
-# Over 400 lines by reason: one GUI whose controls, camera callbacks, render thread and save
-# dialog share the same state (the scene, the current view, the server); the scene writer,
-# tessellation and ray-tree drawing it uses live elsewhere (scene.py, shapes.py, raytree.py).
 class Previewer:
     """The interactive previewer of one scene.
 

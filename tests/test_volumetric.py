@@ -194,8 +194,8 @@ def _furnace(sigma_a, sigma_s, g, eta, width=16, sky="background"):
     )
 
 
-# Non-absorbing walks are long (events grow as (size sigma_s)^2 / (1 - g)): the forward-
-# scattering case is kept to a smaller sigma_s, so that it does not dominate the suite.
+# Non-absorbing walks end only by escaping, so their length grows with the objects' optical
+# size: the second case at sigma_s up to 3 / mm took 141 s of the suite, at 1.2 / mm 10 s.
 @pytest.mark.parametrize(
     "g,eta,sigma_s", [(0.0, 1.5, [0.3, 1.0, 3.0]), (0.7, 1.2, [0.2, 0.5, 1.2])]
 )
