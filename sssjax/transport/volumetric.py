@@ -84,6 +84,7 @@ __all__ = [
 ]
 
 EPS = 1e-3  # mm: ray offsets off surfaces
+INSET = 1e-4  # mm: walkers entering or reflected inside a medium start this far in
 RR_WEIGHT = 0.05  # Russian roulette below this path weight (camera paths start at 1)
 RR_MIN_EVENTS = 4
 MAX_EVENTS = 1 << 17  # safety cap; walks cut here are counted in `WalkStats.truncated`
@@ -363,6 +364,10 @@ def _intersect_walkers(vs: VolScene, o, d, inside_obj, self_sid):
     after = self_sid >= 0
     for i, shape in enumerate(vs.shapes):
         t_min = jnp.where(self_sid == i, EPS, jnp.where(after, -EPS, EPS * 0.1))
+        # a scattering vertex can lie any distance from its boundary: skipping the first
+        # EPS there let walkers slip out of the medium (and, non-absorbing, walk forever)
+        # (walkers that enter or reflect inside start a hair inside, `_step`: no self-hit)
+        t_min = jnp.where(inside_obj == i, 0.0, t_min)
         t_min = jnp.where((inside_obj >= 0) & (inside_obj != i), jnp.inf, t_min)
         t, n = shape.intersect(o, d, t_min, jnp.inf)
         closer = t < t_best
@@ -376,7 +381,6 @@ def _area_point(la, k, u1, u2):
     return la.corner[k] + u1[:, None] * la.edge_u[k] + u2[:, None] * la.edge_v[k]
 
 
-# --- next-event estimation -------------------------------------------------------------
 # --- next-event estimation -------------------------------------------------------------
 def _nee_diffuse(vs: VolScene, x, ns, u, geometry: bool = False):
     """Direct light at diffuse vertices `x` (facing normal `ns`), per unit albedo / pi:
@@ -816,9 +820,11 @@ def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee=True, be=None, mis=Tru
     t, nrm, sid = _intersect_walkers(vs, o, d, obj, st["self_sid"])
     tl, rad = vs.lights.intersect(o, d, t)
     s = -jnp.log1p(-u[:, 0]) / st0h
-    scatter = alive & inside & (s < t)
-    bnd = alive & inside & ~scatter & (sid >= 0)
-    leak = alive & inside & ~scatter & (sid < 0)
+    # every ray from inside a closed object meets its boundary: one that does not has
+    # slipped out (a corner, a grazing hit) and would otherwise scatter on in empty space
+    leak = alive & inside & (sid < 0)
+    scatter = alive & inside & (s < t) & ~leak
+    bnd = alive & inside & ~scatter & ~leak
     out = alive & ~inside
     hit_light = out & (tl < t)
     miss = out & ~hit_light & (sid < 0)
@@ -904,6 +910,11 @@ def _step(vs: VolScene, prop: Proposal, st, u, u_res, nee=True, be=None, mis=Tru
     # surface events leave from the surface point itself (`_intersect_walkers` skips it)
     on_surface = diffuse | mirror | transl | bnd
     o_next = jnp.where(scatter[:, None], x_s, jnp.where(on_surface[:, None], x_t, o))
+    # except into a medium: a hair inside, on the side the walker goes, so that the next
+    # flight meets the boundary from t = 0 on (a face closer than EPS, at an edge, counts)
+    into = enter | refl_in
+    side = jnp.sign(_dot(d_next, nrm))[:, None] * nrm
+    o_next = jnp.where(into[:, None], x_t + INSET * side, o_next)
 
     refl = vs.reflectance[sidc]
     thr_n = jnp.where(diffuse[:, None], thr * alb, jnp.where(mirror[:, None], thr * refl, thr))
