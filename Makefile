@@ -17,10 +17,22 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/sssjax demo --out $(OUT) --force
 
-# The previewer's browser test needs Debian's chromium (CI runs this as root).
+# `make test`: everything but the long physics checks marked `slow` (about 10 minutes on
+# 2 cores); `make test TESTS=all` (what .ci/run runs) adds them. The previewer's browser
+# test needs Debian's chromium (CI runs this as root).
+TESTS ?= fast
+ifeq ($(TESTS),all)
+MARK :=
+else ifeq ($(TESTS),fast)
+MARK := -m "not slow"
+else ifeq ($(TESTS),slow)
+MARK := -m slow
+else
+$(error TESTS must be fast, slow or all, got '$(TESTS)')
+endif
 test: $(STAMP)
 	@test -x /usr/bin/chromium || (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium)
-	$(PY) -m pytest -n 2 -q --durations=40
+	$(PY) -m pytest -n 2 --dist loadgroup -q --durations=40 $(MARK)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .

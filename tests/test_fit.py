@@ -205,6 +205,7 @@ def test_free_exposure_is_recovered_with_the_coefficients(cube):
     assert any("exposure is free" in w for w in res.warnings)
 
 
+@pytest.mark.slow
 def test_g_jacobian_and_identifiability_warning(x64):
     """`g` is fitted through atanh: the solver's Jacobian column for it matches central
     differences of shade, and freeing g with sigma_s while single scattering is off is
@@ -240,6 +241,7 @@ def test_g_jacobian_and_identifiability_warning(x64):
     assert any("g and sigma_s are both free" in w for w in res.warnings), res.warnings
 
 
+@pytest.mark.slow
 def test_refine_adds_the_trace_noise_to_the_error_bars(scene_and_target):
     scene, target = scene_and_target
     plain = fit(scene, target, seed=3)
@@ -267,6 +269,7 @@ def two_light_scene():
     return two_lights(small("marble"))
 
 
+@pytest.mark.slow
 def test_light_groups_add_up_to_the_scene(two_light_scene):
     """The fit traces each free light alone (the others dark, by a factor of the compiled
     tracer): that must equal tracing a scene with the other light switched off, and by
@@ -294,6 +297,7 @@ def test_light_groups_add_up_to_the_scene(two_light_scene):
     np.testing.assert_allclose(parts[0], lamp_only, rtol=1e-5, atol=1e-6 * full.max())
 
 
+@pytest.mark.slow
 def test_free_light_intensity_is_recovered_with_the_coefficients(two_light_scene):
     """A target whose lamp is 1.6x brighter than the scene says: the fit with `lights.1`
     free finds 1.6 and the coefficients (same seed, so the minimum is exact)."""
@@ -426,6 +430,7 @@ def test_highlights_are_the_coefficient_independent_pixels_grown_by_one():
     assert hl.sum() == 4 and hl[:2, :2].all()
 
 
+@pytest.mark.slow
 def test_default_mask_leaves_out_the_mirrored_lamp():
     """skin_sphere mirrors its area lamp in the sphere: in the target (an independent seed)
     those pixels are hundreds of times the subsurface signal and jitter at their edges; the
@@ -457,6 +462,7 @@ def test_default_mask_leaves_out_the_mirrored_lamp():
     assert left.reshape(-1)[lamp].all() and left.sum() == len(pix) - len(d.pix)
 
 
+@pytest.mark.slow
 def test_traces_average_into_one_model(cube):
     """`traces = K` fits the mean of the K traces' models on the pixels they share (one trace
     with K x the samples), by the image's linearity in the transport: `_model` of the

@@ -75,6 +75,7 @@ def test_radial_profile_bad_input():
         radial_profile(np.ones((8, 8)), (4, 4), 1.0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("model", ["better_dipole", "pbd"])
 def test_better_profiles_recovered_by_their_own_model_and_biased_under_the_dipole(x64, model):
     from sssjax import profiles

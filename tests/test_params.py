@@ -66,6 +66,7 @@ def test_apply_sets_values_and_reads_back():
     assert apply(scene, {}) == scene
 
 
+@pytest.mark.slow
 def test_emission_parameters_are_linear_in_the_image():
     """`lights.N` enters linearly: the image of a scene with one light at factor 2.5 is 2.5
     times the image of the scene."""

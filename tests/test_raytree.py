@@ -19,6 +19,8 @@ from sssjax.raytree import KINDS, RayTree, raytree
 from sssjax.render import renderer_for
 from sssjax.transport import NO_RECORD
 
+# one worker builds the module's shared trees/fits (a module fixture runs once per worker)
+pytestmark = pytest.mark.xdist_group("raytree")
 S, NL, NSS, CLOUD, DEPTH = 4, 2, 2, 64, 1  # spp, light_samples (per axis), single, cloud, depth
 EPS = 1e-3  # the tracer's ray offset off surfaces (mm)
 

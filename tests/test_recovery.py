@@ -19,6 +19,8 @@ import pytest
 
 import sssjax
 
+# one worker builds the module's shared trees/fits (a module fixture runs once per worker)
+pytestmark = pytest.mark.xdist_group("recovery")
 SLAB = Path(__file__).parent.parent / "scenes" / "measurement_slab.toml"
 CASES = [("marble", 60.0), ("skimmilk", 60.0), ("ketchup", 12.0)]
 

@@ -54,6 +54,7 @@ def test_bookkeeping_closes(sa, ss, g, eta, theta):
     assert ent.balance == pytest.approx(ref.balance, rel=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("eta", [1.0, 1.3])
 def test_no_absorption_everything_leaves(eta):
     """With sigma_a = 0 nothing is absorbed: what does not leave within the step cap is

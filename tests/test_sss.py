@@ -136,6 +136,7 @@ def test_single_scattering_adds_light_and_is_positive():
     assert np.all(with_ss.mean(axis=(0, 1)) > without.mean(axis=(0, 1)))
 
 
+@pytest.mark.slow
 def test_milk_cylinder_shaded_side_brighter_with_sss():
     scene = sssjax.load_scene(ROOT / "scenes" / "milk_cylinder.toml").with_settings(
         width=48, height=48, spp=4, sss_cloud_size=4096, light_samples=2
