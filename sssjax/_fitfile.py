@@ -48,7 +48,7 @@ _SOLVER = {
     "proposal_rounds": _nonneg_int,
     "proposal_tol": _pos,
 }
-_SYNTHETIC = {"seed": _nonneg_int}
+_SYNTHETIC = {"seed": _nonneg_int, "transport": _str, "spp": _pos_int}
 
 
 def check_fit_file(path: str | Path, d: Mapping[str, Any], error: type[Exception]) -> None:

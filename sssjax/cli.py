@@ -166,8 +166,10 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     check_outputs([out / n for n in names], force=args.force, inputs=inputs)
     scene = job.scene
     if job.target is None:
-        print(f"rendering a synthetic target (seed {job.synthetic_seed}) from the scene's media")
-        target = render(scene, job.synthetic_seed)
+        sc = job.synthetic_scene
+        how = f"{sc.sss.transport} transport, {sc.render.spp} spp, seed {job.synthetic_seed}"
+        print(f"rendering a synthetic target ({how}) from the scene's media")
+        target = render(sc, job.synthetic_seed, progress=True)
     else:
         target = job.target  # `fit` reads it, naming the file in its errors
     try:

@@ -164,6 +164,29 @@ def test_fit_file_typo(tmp_path, capsys):
     assert "parms: unknown key; did you mean 'params'?" in capsys.readouterr().err
 
 
+def test_fit_file_synthetic_target_of_another_transport(tmp_path):
+    """`[synthetic] transport / spp` render the target differently from the fit (an exact
+    target for a diffusion fit); a wrong value is one line naming the file and table."""
+    from sssjax.fit import FitError, load_fit_file
+
+    f = tmp_path / "f.toml"
+    head = f'scene = "{ROOT / "scenes" / "marble_cube.toml"}"\n[synthetic]\nseed = 2\n'
+    f.write_text(head + 'transport = "volumetric"\nspp = 6\n')
+    job = load_fit_file(f)
+    assert job.synthetic_scene.sss.transport == "volumetric"
+    assert job.synthetic_scene.render.spp == 6 and job.synthetic_seed == 2
+    assert job.scene.sss.transport == "diffusion" and job.scene.render.spp != 6
+    f.write_text(head)
+    job = load_fit_file(f)
+    assert job.synthetic_scene is job.scene  # no overrides: the fit's own scene
+    f.write_text(head + 'transport = "volumetrik"\n')
+    with pytest.raises(FitError, match=r"f.toml: \[synthetic\]: .*did you mean 'volumetric'"):
+        load_fit_file(f)
+    f.write_text(head + "spp = 0\n")
+    with pytest.raises(FitError, match=r"f.toml: \[synthetic\] spp: must be >= 1, got 0"):
+        load_fit_file(f)
+
+
 @pytest.mark.slow
 def test_robust_loss_ignores_outlier_pixels(cube):
     """2% of the translucent pixels replaced by bright outliers (a highlight, dust): the plain

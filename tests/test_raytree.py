@@ -6,6 +6,7 @@ Units: mm. Scene A is a marble cube on a diffuse floor with a mirror, a red sphe
 shadows the floor, an area light and a point light; scene B two parallel mirrors.
 """
 
+import functools
 import json
 
 import jax
@@ -19,7 +20,7 @@ from sssjax.raytree import KINDS, RayTree, raytree
 from sssjax.render import renderer_for
 from sssjax.transport import NO_RECORD
 
-# one worker builds the module's shared trees/fits (a module fixture runs once per worker)
+# one worker builds the module's shared trees/fits once (they are cached per process)
 pytestmark = pytest.mark.xdist_group("raytree")
 S, NL, NSS, CLOUD, DEPTH = 4, 2, 2, 64, 1  # spp, light_samples (per axis), single, cloud, depth
 EPS = 1e-3  # the tracer's ray offset off surfaces (mm)
@@ -169,8 +170,15 @@ def diffuse_end(p):
 
 
 # --- fixtures ----------------------------------------------------------------------------
-@pytest.fixture(scope="module")
+@pytest.fixture
 def a():
+    return _trees_a()
+
+
+# cached for the module rather than a module fixture: xdist interleaves other modules'
+# tests within a worker, and pytest would tear a module fixture down and build it again
+@functools.cache
+def _trees_a():
     sc = scene_a()
     pix = {
         "cube": pixel_of(sc, [0.0, 10.0, CUBE_H]),  # the middle of the cube's front face

@@ -12,6 +12,7 @@ is several percent: `fits/README.md` measures why.)
 """
 
 import dataclasses
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,7 @@ import pytest
 
 import sssjax
 
-# one worker builds the module's shared trees/fits (a module fixture runs once per worker)
+# one worker builds the module's shared trees/fits once (they are cached per process)
 pytestmark = pytest.mark.xdist_group("recovery")
 SLAB = Path(__file__).parent.parent / "scenes" / "measurement_slab.toml"
 CASES = [("marble", 60.0), ("skimmilk", 60.0), ("ketchup", 12.0)]
@@ -32,8 +33,15 @@ def slab_scene(material: str, view_mm: float, n: int = 96):
     return sc.replace(camera=dataclasses.replace(sc.camera, view_width=view_mm))
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def fits():
+    return _fits()
+
+
+# cached for the module rather than a module fixture: xdist interleaves other modules'
+# tests within a worker, and pytest would tear a module fixture down and build it again
+@functools.cache
+def _fits():
     out = {}
     for material, view in CASES:
         sc = slab_scene(material, view)

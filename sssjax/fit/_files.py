@@ -19,7 +19,7 @@ __all__ = ["FitJob", "load_fit_file"]
 _FIT_KEYS = {"scene", "target", "synthetic", "params", "init", "settings", "solver", "output"}
 # `[solver]`: every `FitOptions` field (`method` names the solver), and the trace seed
 _SOLVER_KEYS = {"method", "seed"} | {f.name for f in dataclasses.fields(FitOptions)} - {"solver"}
-_SYNTH_KEYS = {"seed"}
+_SYNTH_KEYS = {"seed", "transport", "spp"}
 
 
 @dataclasses.dataclass
@@ -35,6 +35,8 @@ class FitJob:
     seed: int | None
     output: Path
     options: FitOptions = dataclasses.field(default_factory=FitOptions)
+    # the scene the synthetic target is rendered from (its `[synthetic]` transport / spp)
+    synthetic_scene: Any = None
 
     def fit_kwargs(self) -> dict[str, Any]:
         """The keyword arguments of `fit` this file sets."""
@@ -45,7 +47,9 @@ def load_fit_file(path: str | Path) -> FitJob:
     """Read and validate a fit file (TOML). Relative paths resolve against its folder.
 
     Keys: `scene` (path), `target` (image path) or `[synthetic] seed = S` (render the target
-    from the scene's own media with seed S: a recovery check), `params` (list of parameter
+    from the scene's own media with seed S: a recovery check; `transport` and `spp` there
+    render it with another transport than the fit's, e.g. an exact `"volumetric"` target
+    for a `"diffusion"` fit, and other samples per pixel), `params` (list of parameter
     names, `sssjax.params`), `[init]` (starting values by parameter name, mm^-1),
     `[settings]` (scene overrides: `width`, `height`, `spp`, `light_samples`,
     `sss_cloud_size`, ...), `[solver]` (`method` lm|gn|bfgs, `seed`, and the other
@@ -78,8 +82,15 @@ def load_fit_file(path: str | Path) -> FitJob:
     solver = dict(d.get("solver", {}))
     unknown(solver, _SOLVER_KEYS, "[solver] ")
     synth = d.get("synthetic")
+    synth_scene = None
     if synth is not None:
         unknown(synth, _SYNTH_KEYS, "[synthetic] ")
+        names = {"transport": "sss_transport", "spp": "spp"}
+        over = {names[k]: v for k, v in synth.items() if k in names}
+        try:
+            synth_scene = scene.with_settings(**over) if over else scene
+        except (TypeError, ValueError) as e:
+            raise FitError(f"{path}: [synthetic]: {e}") from None
     params = d.get("params")
     if params is not None and (
         not isinstance(params, list) or not all(isinstance(p, str) for p in params)
@@ -104,6 +115,7 @@ def load_fit_file(path: str | Path) -> FitJob:
         scene=scene,
         target=(base / d["target"]) if "target" in d else None,
         synthetic_seed=int(synth.get("seed", 1)) if synth is not None else None,
+        synthetic_scene=synth_scene,
         params=params,
         init=init,
         seed=seed,
