@@ -18,8 +18,10 @@ demo: $(STAMP)
 	$(VENV)/bin/sssjax demo --out $(OUT) --force
 
 # `make test`: everything but the long physics checks marked `slow` (about 10 minutes on
-# 2 cores); `make test TESTS=all` (what .ci/run runs) adds them. The previewer's browser
-# test needs Debian's chromium (CI runs this as root).
+# 2 cores); `make test TESTS=all` (what .ci/run runs) adds them. `--dist loadfile`: the tests
+# of one file share compiled programs and results in one worker (pytest 9.2 ignores
+# xdist_group marks, pytest-xdist issue 1386). The previewer's browser test needs Debian's
+# chromium (CI runs this as root).
 TESTS ?= fast
 ifeq ($(TESTS),all)
 MARK :=
@@ -32,7 +34,7 @@ $(error TESTS must be fast, slow or all, got '$(TESTS)')
 endif
 test: $(STAMP)
 	@test -x /usr/bin/chromium || (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium)
-	$(PY) -m pytest -n 2 --dist loadgroup -q --durations=40 $(MARK)
+	$(PY) -m pytest -n 2 --dist loadfile -q --durations=40 $(MARK)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .

@@ -20,8 +20,6 @@ from sssjax.raytree import KINDS, RayTree, raytree
 from sssjax.render import renderer_for
 from sssjax.transport import NO_RECORD
 
-# one worker builds the module's shared trees/fits once (they are cached per process)
-pytestmark = pytest.mark.xdist_group("raytree")
 S, NL, NSS, CLOUD, DEPTH = 4, 2, 2, 64, 1  # spp, light_samples (per axis), single, cloud, depth
 EPS = 1e-3  # the tracer's ray offset off surfaces (mm)
 
@@ -175,8 +173,8 @@ def a():
     return _trees_a()
 
 
-# cached for the module rather than a module fixture: xdist interleaves other modules'
-# tests within a worker, and pytest would tear a module fixture down and build it again
+# cached per process rather than in a module fixture: built once whatever order the
+# tests run in (a module fixture is torn down and rebuilt when other modules' tests interleave)
 @functools.cache
 def _trees_a():
     sc = scene_a()

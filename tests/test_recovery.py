@@ -20,8 +20,6 @@ import pytest
 
 import sssjax
 
-# one worker builds the module's shared trees/fits once (they are cached per process)
-pytestmark = pytest.mark.xdist_group("recovery")
 SLAB = Path(__file__).parent.parent / "scenes" / "measurement_slab.toml"
 CASES = [("marble", 60.0), ("skimmilk", 60.0), ("ketchup", 12.0)]
 
@@ -38,8 +36,8 @@ def fits():
     return _fits()
 
 
-# cached for the module rather than a module fixture: xdist interleaves other modules'
-# tests within a worker, and pytest would tear a module fixture down and build it again
+# cached per process rather than in a module fixture: built once whatever order the
+# tests run in (a module fixture is torn down and rebuilt when other modules' tests interleave)
 @functools.cache
 def _fits():
     out = {}

@@ -198,7 +198,6 @@ def _furnace(sigma_a, sigma_s, g, eta, width=16, sky="background"):
 # Non-absorbing walks end only by escaping, so their length grows with the objects' optical
 # size: the second case at sigma_s up to 3 / mm took 141 s of the suite, at 1.2 / mm 10 s.
 @pytest.mark.slow
-@pytest.mark.xdist_group("furnace")  # both cases share the compiled walks
 @pytest.mark.parametrize(
     "g,eta,sigma_s", [(0.0, 1.5, [0.3, 1.0, 3.0]), (0.7, 1.2, [0.2, 0.5, 1.2])]
 )
@@ -388,7 +387,6 @@ def _blocks(imgs, b=4):
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("lit_scene")  # one worker compiles the walks of both tests once
 def test_next_event_estimation_through_the_boundary_agrees_with_random_exits():
     """Refracted next-event estimation (planar faces, a sphere) with its exclusion of the
     paths it covers, against the same walks counting every light hit of random exits: two
@@ -447,7 +445,6 @@ def _slab(sigma_a, sigma_s, g, eta, n=48, view=8.0, radius=0.05, big=True):
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("thick_slab")  # both cases share one compiled walk
 @pytest.mark.parametrize("sigma_a,sigma_s,g,eta", [(0.1, 0.9, 0.0, 1.3), (0.05, 1.5, 0.6, 1.5)])
 def test_thick_slab_under_a_beam_reproduces_the_independent_radiance_profile(
     sigma_a, sigma_s, g, eta
@@ -498,7 +495,6 @@ def _scaled(media, f):
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("lit_scene")
 def test_reweighted_trace_equals_a_fresh_trace_and_its_sample_size_falls_away_from_the_proposal():
     """Shading a trace at coefficients x1.5 against fresh traces sampled at them (independent
     seeds): equal within the combined standard error, region by region; the effective
