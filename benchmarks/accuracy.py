@@ -520,7 +520,30 @@ def write_markdown(path, rows_all, fits_all, plots, meta):
     for p in plots:
         L.append(f"![{p.stem}](images/{p.name})")
         L.append("")
+    L += objects_section(path.parent / "transports.md")
     path.write_text("\n".join(L))
+
+
+def objects_section(transports_md: Path) -> list[str]:
+    """The object-level comparison of the two transports (`benchmarks/transports.py`, which
+    writes `transports.md` beside this file), carried into accuracy.md when it exists."""
+    L = ["## Objects: the diffusion transport against exact (volumetric) transport", ""]
+    if not transports_md.exists():
+        return L + ["Run `python benchmarks/transports.py` to measure it.", ""]
+    text = transports_md.read_text().splitlines()
+    table = [line for line in text if line.startswith("|")]
+    L += [
+        "At the true coefficients, the ratio of the mean radiance rendered by the diffusion "
+        "transport to the volumetric (exact) one, per region and channel, from "
+        f"[`{transports_md.name}`]({transports_md.name}) (its settings and date there). The profile "
+        "errors above are the diffusion model's on its own geometry (a flat semi-infinite "
+        "medium); on objects it also misses light that is not direct, light leaving through "
+        "the back and sides, and translucent shadows.",
+        "",
+        *table,
+        "",
+    ]
+    return L
 
 
 def main() -> None:

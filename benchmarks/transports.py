@@ -15,6 +15,8 @@ seeds), and the wall time of each render; writes the table as markdown to `--out
 from __future__ import annotations
 
 import argparse
+import datetime
+import os
 import sys
 import time
 from pathlib import Path
@@ -73,11 +75,12 @@ def main() -> None:
     lines = [
         "# The diffusion transport against the volumetric one",
         "",
-        f"Written by `benchmarks/transports.py --size {a.size} --spp {a.spp} --seeds {a.seeds}`:",
+        f"Written by `benchmarks/transports.py --size {a.size} --spp {a.spp} --seeds {a.seeds}`"
+        f" ({datetime.date.today().isoformat()}, {os.cpu_count()} CPU cores):",
         "the scenes of `benchmarks/vs_mitsuba.py` at the true coefficients, the ratio of the",
         "mean radiance diffusion / volumetric per region and channel (R, G, B), +- its standard",
-        "error from the independent volumetric renders. 1 is exact; the volumetric transport",
-        "agrees with Mitsuba 3 within noise (README, 'Two transports').",
+        "error from the independent volumetric renders. 1 is exact; the volumetric transport's",
+        "own comparison with Mitsuba 3 is in the README ('Against Mitsuba 3').",
         "",
         "| scene | region | pixels | R | G | B |",
         "| --- | --- | --- | --- | --- | --- |",
