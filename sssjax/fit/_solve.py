@@ -244,6 +244,19 @@ def _rounds_sd(rounds: list) -> np.ndarray | None:
     return tail.std(axis=0, ddof=1) / np.sqrt(len(tail))
 
 
+# a step's standard error (log coefficients) beyond which "within its error" means nothing
+SETTLE_MAX_SD = 0.1
+
+
+def _settled(dy, sd, tol: float) -> bool:
+    """Whether a re-traced round's step `dy` (log coefficients) is within its noise: every
+    component within `max(tol, sd)`, and every `sd` itself below `SETTLE_MAX_SD` (10 %): a
+    step whose error is larger than that is no evidence of having settled (an undetermined
+    coefficient would otherwise settle at once, anywhere)."""
+    dy, sd = np.abs(np.asarray(dy)), np.asarray(sd)
+    return bool(np.all(dy <= np.maximum(tol, sd)) and np.all(sd < SETTLE_MAX_SD))
+
+
 def _retraced_rounds(problem: FitProblem, keys, media, r: Run, eta, weights_at=None):
     """A re-weighting transport's fit after the first solve: Gauss-Newton rounds, each on a
     fresh trace with the current solution as the walks' proposal.
@@ -294,8 +307,7 @@ def _retraced_rounds(problem: FitProblem, keys, media, r: Run, eta, weights_at=N
             {"step": len(history), "loss": float(loss), "params": problem.values(y).tolist()}
         )
         _progress_line(bar, k + 1, float(loss), names, problem.values(y))
-        within = np.all(np.abs(dy) <= np.maximum(opts.proposal_tol, np.asarray(sd)))
-        settled = settled + 1 if within else 0
+        settled = settled + 1 if _settled(dy, sd, opts.proposal_tol) else 0
         if settled >= 2:  # two steps in a row within their noise
             converged = True
             break
