@@ -1,7 +1,8 @@
 """sssjax's volumetric transport against an independent renderer: Mitsuba 3's `volpath`.
 
     pip install mitsuba            # optional benchmark dependency (`pip install -e '.[bench]'`)
-    python benchmarks/vs_mitsuba.py [--quick] [--scenes cube,cylinder,sphere] [--out DIR]
+    python benchmarks/vs_mitsuba.py [--quick] [--scenes cube,cylinder,sphere] [--seeds N]
+                                    [--spp SSSJAX MITSUBA] [--out DIR]
 
 Three scenes of our own (a marble cube, a skim-milk cylinder, a ketchup sphere, each behind a
 smooth dielectric of eta 1.3, on a grey floor under one rectangular area light) are rendered

@@ -166,7 +166,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     check_outputs([out / n for n in names], force=args.force, inputs=inputs)
     scene = job.scene
     if job.target is None:
-        sc = job.synthetic_scene
+        sc = job.synthetic_scene or scene
         how = f"{sc.sss.transport} transport, {sc.render.spp} spp, seed {job.synthetic_seed}"
         print(f"rendering a synthetic target ({how}) from the scene's media")
         target = render(sc, job.synthetic_seed, progress=True)

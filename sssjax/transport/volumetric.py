@@ -354,8 +354,10 @@ def _occluded(vs: VolScene, o, d, t_max):
 
 def _intersect_walkers(vs: VolScene, o, d, inside_obj, self_sid):
     """Nearest hit for walkers: those inside a medium (`inside_obj >= 0`) see only their own
-    object; a ray that leaves a surface (`self_sid >= 0`, origin on it) ignores that shape
-    within `EPS` and accepts the others from `-EPS` on, so that surfaces in contact (a cube
+    object, from `t = 0` on (a scattering vertex may lie any distance from the boundary, and
+    `_step` starts walkers that enter or reflect inside `INSET` in, off the surface); a ray
+    outside that leaves a surface (`self_sid >= 0`, origin on it) ignores that shape within
+    `EPS` and accepts the others from `-EPS` on, so that surfaces in contact (a cube
     standing on a floor) are met where they touch rather than skipped."""
     W = o.shape[0]
     t_best = jnp.full(W, jnp.inf, o.dtype)
@@ -364,9 +366,7 @@ def _intersect_walkers(vs: VolScene, o, d, inside_obj, self_sid):
     after = self_sid >= 0
     for i, shape in enumerate(vs.shapes):
         t_min = jnp.where(self_sid == i, EPS, jnp.where(after, -EPS, EPS * 0.1))
-        # a scattering vertex can lie any distance from its boundary: skipping the first
-        # EPS there let walkers slip out of the medium (and, non-absorbing, walk forever)
-        # (walkers that enter or reflect inside start a hair inside, `_step`: no self-hit)
+        # inside: skipping the first EPS let walkers slip out (and walk on in empty space)
         t_min = jnp.where(inside_obj == i, 0.0, t_min)
         t_min = jnp.where((inside_obj >= 0) & (inside_obj != i), jnp.inf, t_min)
         t, n = shape.intersect(o, d, t_min, jnp.inf)
