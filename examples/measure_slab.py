@@ -27,7 +27,9 @@ eta = float(true.eta)
 R = image_to_reflectance(image, eta, power=1.0)
 center = find_center(image)
 profile = radial_profile(R, center, scene.camera.pixel_size_mm)
-fit = fit_profile(profile, eta, r_min=1.0)  # the centre (within 1 mm) is left out
+# the diffusion transport renders the beam's multiple scattering only: orders="multiple";
+# the centre (within 1 mm) is left out
+fit = fit_profile(profile, eta, r_min=1.0, orders="multiple")
 
 for c, ch in enumerate("RGB"):
     print(

@@ -39,7 +39,12 @@ def materials_table(profile: str = "dipole") -> str:
             f"{trip(Rd_total(m.sigma_a, m.sigmap_s, m.eta, profile), '{:5.3f}'):<19} "
             f"{trip(m.diffuse_mean_free_path, '{:6.2f}'):<22}"
         )
-    names = {"dipole": "the classic dipole", "better_dipole": "the better dipole", "pbd": "PBD"}
+    names = {
+        "dipole": "the classic dipole",
+        "better_dipole": "the better dipole",
+        "pbd": "PBD",
+        "tabulated": "exact transport (tabulated)",
+    }
     lines.append(
         f"(Jensen et al. 2001; g = 0, eta = 1.3; total R_d of {names.get(profile, profile)})"
     )
@@ -206,10 +211,11 @@ def _check_measure_flags(args: argparse.Namespace) -> None:
         finite(flag, v)
     for v in args.center or ():
         finite("--center", v)
-    if args.r_min < 0:
+    if args.r_min is not None and args.r_min < 0:
         raise UserError(f"--r-min must be >= 0 mm, got {args.r_min:g}")
-    if args.r_max is not None and not args.r_max > args.r_min:
-        raise UserError(f"--r-max must be > --r-min ({args.r_min:g} mm), got {args.r_max:g}")
+    r_min = args.r_min or 0.0
+    if args.r_max is not None and not args.r_max > r_min:
+        raise UserError(f"--r-max must be > --r-min ({r_min:g} mm), got {args.r_max:g}")
     if args.power is not None and not args.power > 0:
         raise UserError(f"--power must be > 0 W, got {args.power:g}")
     for flag, v in (("--incidence", args.incidence), ("--view-angle", args.view_angle)):
@@ -226,6 +232,43 @@ def _cmd_params(args: argparse.Namespace) -> int:
         v = np.atleast_1d(np.asarray(p.value, dtype=np.float64))
         print(f"{p.name:<28} {p.enters.value:<10} {' '.join(f'{x:.6g}' for x in v)}")
     return 0
+
+
+def _identifiability(prof, eta: float, r_min: float, orders: str) -> None:
+    """Print the diffusion length `1 / sigma_tr` that a quick free-scale fit implies, per
+    channel, against the profile's range, and warn where the range is shorter than two
+    diffusion lengths: `sigma_a` then rests on the absolute level, not on the shape."""
+    from .measure import fit_profile
+    from .profiles import sigma_tr_better
+
+    quick = fit_profile(
+        prof,
+        eta,
+        r_min=r_min,
+        free_scale=True,
+        model="better_dipole",
+        orders=orders,
+        max_steps=60,
+    )
+    ell = 1.0 / np.asarray(sigma_tr_better(quick.sigma_a, quick.sigmap_s), np.float64)
+    span = float(prof.r.max()) - r_min
+    n = span / ell
+    print(
+        "diffusion length 1/sigma_tr (quick free fit): "
+        + ", ".join(f"{'RGB'[c]} {ell[c]:.3g} mm" for c in range(3))
+        + f"; the profile spans {span:.3g} mm = "
+        + ", ".join(f"{n[c]:.2g}" for c in range(3))
+        + " of them"
+    )
+    short = [c for c in range(3) if n[c] < 2.0]
+    if short:
+        chans = "/".join("RGB"[c] for c in short)
+        warnings.warn(
+            f"the profile spans fewer than two diffusion lengths in {chans}: sigma_a there "
+            "rests on the absolute level (the beam power and calibration), not on the "
+            "profile's shape; a larger image (or --r-max) or a known power helps",
+            stacklevel=2,
+        )
 
 
 def _cmd_measure(args: argparse.Namespace) -> int:
@@ -276,18 +319,31 @@ def _cmd_measure(args: argparse.Namespace) -> int:
         image, eta, power, incidence_deg=args.incidence, view_deg=args.view_angle
     )
     prof = radial_profile(R, center, pixel, r_max_mm=args.r_max)
-    n_used = int(np.sum(prof.r >= args.r_min))
+    # with single scattering in the model the centre is usable, except the first two
+    # annuli, where the steep profile's annulus mean and its value at the mean radius differ
+    # a photograph holds every order; sssjax's diffusion transport renders a beam's
+    # multiple scattering only
+    rendered_ms = args.orders is None and meta.get("transport") == "diffusion"
+    rendered_ms = rendered_ms and bool(meta.get("beams"))
+    orders = args.orders or ("multiple" if rendered_ms else "all")
+    r_min = args.r_min
+    if r_min is None:
+        r_min = 2.0 * pixel if orders == "all" else 1.0
+    n_used = int(np.sum(prof.r >= r_min))
     if n_used < 4:
         raise UserError(
-            f"only {n_used} annuli beyond --r-min {args.r_min:g} mm (profile reaches "
+            f"only {n_used} annuli beyond --r-min {r_min:g} mm (profile reaches "
             f"{prof.r.max():.3g} mm): lower --r-min or give a larger image"
         )
-    res = fit_profile(prof, eta, r_min=args.r_min, free_scale=free, model=args.model)
     print(
         f"{path}: {w}x{h} px, {pixel:.4g} mm/px, centre ({center[0]:.1f}, {center[1]:.1f}) px, "
-        f"eta {eta:g}, r {args.r_min:g}..{prof.r.max():.1f} mm, model {args.model}, "
+        f"eta {eta:g}, r {r_min:g}..{prof.r.max():.1f} mm, model {args.model}, "
+        f"orders {orders}"
+        + (" (a diffusion-transport render: no single scattering), " if rendered_ms else ", ")
         + ("free intensity scale" if free else f"beam power {np.ravel(power).tolist()} W")
     )
+    _identifiability(prof, eta, r_min, orders)
+    res = fit_profile(prof, eta, r_min=r_min, free_scale=free, model=args.model, orders=orders)
     print(f"{'ch':<3} {'sigma_a [1/mm]':>22} {'sigmap_s [1/mm]':>22} {'scale':>16}  steps")
     for c in range(3):
         sc = f"{res.scale[c]:.4g} +- {res.scale_stderr[c]:.2g}" if free else "1 (known)"
@@ -302,15 +358,16 @@ def _cmd_measure(args: argparse.Namespace) -> int:
             "its error bar says how well"
         )
     out.mkdir(parents=True, exist_ok=True)
-    plot = measurement_plot(prof, res, eta, out / "profile.png", r_min=args.r_min)
+    plot = measurement_plot(prof, res, eta, out / "profile.png", r_min=r_min)
     result = {
         "image": str(path),
         "pixel_size_mm": pixel,
         "center_px": list(center),
         "eta": eta,
-        "r_min_mm": args.r_min,
+        "r_min_mm": r_min,
         "free_scale": free,
         "model": args.model,
+        "orders": orders,
         "units": "coefficients 1/mm",
         **{
             k: np.asarray(getattr(res, k)).tolist()
@@ -510,13 +567,25 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--eta", type=float, help="relative index of refraction (default 1.3)")
     s.add_argument("--power", type=float, help="beam power in W (default: metadata, else free)")
     s.add_argument("--free-scale", action="store_true", help="fit an intensity scale too")
-    s.add_argument("--r-min", type=float, default=1.0, help="exclude r < R_MIN mm (1.0)")
+    s.add_argument(
+        "--r-min",
+        type=float,
+        help="exclude r < R_MIN mm (default: two pixels with --orders all, 1 mm with multiple)",
+    )
+    s.add_argument(
+        "--orders",
+        choices=("all", "multiple"),
+        help="what the image holds: all (single + multiple scattering: a photograph, the "
+        "default) or multiple (no single scattering: the default for images that sssjax's "
+        "diffusion transport rendered)",
+    )
     s.add_argument("--r-max", type=float, help="largest radius, mm (default: image edge)")
     s.add_argument(
         "--model",
         default="dipole",
         choices=PROFILES,
-        help="diffusion profile to fit (default: the classic dipole; see docs/accuracy.md)",
+        help="profile to fit (default: the classic dipole; tabulated is exact transport; "
+        "see docs/accuracy.md)",
     )
     s.add_argument("--incidence", type=float, default=0.0, help="beam angle from normal, deg")
     s.add_argument("--view-angle", type=float, default=0.0, help="camera angle from normal")

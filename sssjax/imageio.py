@@ -371,7 +371,8 @@ def render_metadata(scene, **extra: Any) -> dict[str, Any]:
     mm), the translucent media (coefficients in 1/mm), the beam lights, the version and the
     units; `extra` (the `seed`, or a viewer's `seeds` and total `spp`) is added last.
 
-    `sssjax measure` reads `pixel_size_mm`, `media` (`eta`) and `beams` back from it.
+    `sssjax measure` reads `pixel_size_mm`, `media` (`eta`), `beams` and `transport` back
+    from it.
     """
     from ._version import __version__
 
@@ -402,6 +403,9 @@ def render_metadata(scene, **extra: Any) -> dict[str, Any]:
     }
     if cam.projection == "orthographic":
         meta["pixel_size_mm"] = cam.pixel_size_mm
+    # `sssjax measure` needs it: the diffusion transport renders a beam's multiple
+    # scattering only (no single scattering under the beam)
+    meta["transport"] = scene.sss.transport
     beams = [b for b in scene.lights if b.kind == "beam"]
     if beams:
         meta["beams"] = [

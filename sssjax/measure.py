@@ -25,9 +25,17 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .profiles import Rd, check_profile
+from .profiles import Rd, check_profile, single_scatter, tabulated_error
 
-__all__ = ["Profile", "ProfileFit", "radial_profile", "fit_profile"]
+__all__ = [
+    "Profile",
+    "ProfileFit",
+    "radial_profile",
+    "fit_profile",
+    "model_profile",
+    "ORDERS",
+    "check_orders",
+]
 
 
 @dataclasses.dataclass
@@ -54,6 +62,7 @@ class ProfileFit:
     steps: list[int]
     converged: list[bool]
     model: str = "dipole"
+    orders: str = "multiple"
 
 
 def radial_profile(
@@ -110,6 +119,7 @@ def fit_profile(
     rel_floor: float = 1e-3,
     max_steps: int = 200,
     model: str = "dipole",
+    orders: str = "all",
 ) -> ProfileFit:
     """Fit `sigma_a`, `sigmap_s` (mm^-1) per channel so that `scale R_d(r)` matches the profile.
 
@@ -120,23 +130,29 @@ def fit_profile(
     over 1e-4..10 and 1e-2..30 mm^-1);
     `rel_floor` a floor on the relative error of each annulus (model error, quantisation);
     `model` the diffusion profile fitted, one of `sssjax.profiles.PROFILES` (`"dipole"`,
-    `"better_dipole"`, `"pbd"`; named `model` because `profile` is the data).
+    `"better_dipole"`, `"pbd"`, `"tabulated"`; named `model` because `profile` is the data);
+    `orders` what the data holds: `"all"` (a photograph: single and multiple scattering; the
+    model adds `sssjax.profiles.single_scatter`, the exact single scattering under a normal
+    beam, so the centre of the profile can be used) or `"multiple"` (multiple scattering
+    only, as the diffusion profiles model it). With `model="tabulated"` the table's own
+    relative Monte Carlo error is added to each annulus's in quadrature.
 
     **Returns:** a `ProfileFit` with standard errors from the Gauss-Newton covariance.
     """
     check_profile(model)
+    check_orders(orders)
     sel = (profile.r >= r_min) & np.all(profile.mean > 0, axis=1)
     r = jnp.asarray(profile.r[sel])
     out = {k: [] for k in ("sa", "sp", "sc", "esa", "esp", "esc", "steps", "ok")}
     n_p = 3 if free_scale else 2
-    resid_args = _residual(free_scale, model)
+    resid_args = _residual(free_scale, model, orders)
     for c in range(3):
         data = profile.mean[sel, c]
         rel = np.sqrt((profile.stderr[sel, c] / data) ** 2 + rel_floor**2)
         logd, w = jnp.asarray(np.log(data)), jnp.asarray(1.0 / rel)
         args = (r, logd, w, jnp.asarray(eta, r.dtype))
         if init is None:
-            starts = _grid_starts(r, logd, w, eta, free_scale, model=model)
+            starts = _grid_starts(r, logd, w, eta, free_scale, model=model, orders=orders)
         else:
             starts = [jnp.asarray([np.log(init[0]), np.log(init[1])] + [0.0] * free_scale)]
         # several starts from the best grid points: the (sigma_a, sigmap_s) valley along
@@ -156,6 +172,21 @@ def fit_profile(
             if best is None or loss < best[0]:
                 best = (loss, sol)
         sol = best[1]
+        if model == "tabulated":
+            # the table's own error, at the coefficients found, then a polish from there
+            v0 = np.exp(np.asarray(sol.value, np.float64))
+            t_err = tabulated_error(np.asarray(r), v0[0], v0[1], eta)
+            w = jnp.asarray(1.0 / np.sqrt(rel**2 + t_err**2))
+            args = (r, logd, w, jnp.asarray(eta, r.dtype))
+            sol = optx.least_squares(
+                resid_args,
+                optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10),
+                sol.value,
+                args=args,
+                max_steps=max_steps,
+                throw=False,
+                options={"jac": "fwd"},
+            )
         y = sol.value
         J, rr = (np.asarray(x, dtype=np.float64) for x in _jac_and_resid(resid_args, y, args))
         s2 = float(rr @ rr) / max(rr.size - n_p, 1)
@@ -187,11 +218,31 @@ def fit_profile(
         list(out["steps"]),
         list(out["ok"]),
         model,
+        orders,
     )
 
 
+ORDERS = ("all", "multiple")
+
+
+def check_orders(orders: str) -> str:
+    """`orders` if it is `"all"` or `"multiple"`, else a one-line `ValueError`."""
+    if orders not in ORDERS:
+        raise ValueError(f"orders must be 'all' or 'multiple', got {orders!r}")
+    return orders
+
+
+def model_profile(r, sigma_a, sigmap_s, eta, model: str = "dipole", orders: str = "all"):
+    """What `fit_profile` fits: `R_d(r)` of `model`, plus the exact single scattering under
+    a normal beam when `orders == "all"` (mm^-2 per unit power entering)."""
+    m = Rd(r, sigma_a, sigmap_s, eta, model)
+    if orders == "all":
+        m = m + single_scatter(r, sigma_a, sigmap_s, eta)
+    return m
+
+
 @functools.cache
-def _residual(free_scale: bool, model: str):
+def _residual(free_scale: bool, model: str, orders: str = "multiple"):
     """The weighted log residual `(log(scale R_d(r)) - log data) w` of `y = log(sigma_a,
     sigmap_s[, scale])`, `args = (r, log data, w, eta)`: one function object per layout, so
     its compiled solver step is reused across channels and calls."""
@@ -199,7 +250,7 @@ def _residual(free_scale: bool, model: str):
     def resid(y, args):
         r, logd, w, eta = args
         sa, sp = jnp.exp(y[0]), jnp.exp(y[1])
-        logm = jnp.log(Rd(r, sa, sp, eta, model)) + (y[2] if free_scale else 0.0)
+        logm = jnp.log(model_profile(r, sa, sp, eta, model, orders)) + (y[2] if free_scale else 0.0)
         return (logm - logd) * w
 
     return resid
@@ -215,21 +266,25 @@ def _jac_and_resid(resid, y, args):
     return jax.jacfwd(resid)(y, args), resid(y, args)
 
 
-@functools.partial(jax.jit, static_argnames="model")
-def _grid_log_model(r, sa, sp, eta, model):
+@functools.partial(jax.jit, static_argnames=("model", "orders"))
+def _grid_log_model(r, sa, sp, eta, model, orders="multiple"):
     """`log R_d` on the `(sa, sp)` grid at `r`, `(len(sa), len(sp), len(r))`, one row of
     `sa` at a time (PBD's 100 depths would not fit in memory at once)."""
-    return jax.lax.map(lambda a: jnp.log(Rd(r[None, :], a, sp[:, None], eta, model)), sa)
+    return jax.lax.map(
+        lambda a: jnp.log(model_profile(r[None, :], a, sp[:, None], eta, model, orders)), sa
+    )
 
 
-def _grid_starts(r, logd, w, eta, free_scale, n_starts: int = 6, model: str = "dipole"):
+def _grid_starts(
+    r, logd, w, eta, free_scale, n_starts: int = 6, model: str = "dipole", orders: str = "multiple"
+):
     """The best `n_starts` local minima of the loss on a log grid of `(sigma_a, sigmap_s)`
     (with the best log-scale offset in closed form when the scale is free), for the
     diffusion profile `model`."""
     sa = jnp.exp(jnp.linspace(np.log(1e-4), np.log(10.0), 48))
     sp = jnp.exp(jnp.linspace(np.log(1e-2), np.log(30.0), 48))
     A, P = jnp.meshgrid(sa, sp, indexing="ij")
-    logm = _grid_log_model(r, sa, sp, eta, model)  # (48, 48, n)
+    logm = _grid_log_model(r, sa, sp, eta, model, orders)  # (48, 48, n)
     d = (logm - logd) * w
     off = jnp.zeros(A.shape + (1,))
     if free_scale:

@@ -150,9 +150,10 @@ def measurement_plot(profile, fit, eta: float, path: str | Path, *, r_min: float
 
     **Returns:** the path written.
     """
-    from .profiles import Rd
+    from .measure import model_profile
 
     model_name = getattr(fit, "model", "dipole")
+    orders = getattr(fit, "orders", "multiple")
     plt = _pyplot()
     fig, (ax, axr) = plt.subplots(
         2, 1, figsize=(7.0, 6.4), sharex=True, gridspec_kw={"height_ratios": [3, 1]}
@@ -160,8 +161,9 @@ def measurement_plot(profile, fit, eta: float, path: str | Path, *, r_min: float
     r = np.asarray(profile.r)
     rr = np.linspace(max(r.min(), 1e-3), r.max(), 400)
     for c in range(3):
-        model = fit.scale[c] * np.asarray(Rd(rr, fit.sigma_a[c], fit.sigmap_s[c], eta, model_name))
-        at = fit.scale[c] * np.asarray(Rd(r, fit.sigma_a[c], fit.sigmap_s[c], eta, model_name))
+        sa, sp = fit.sigma_a[c], fit.sigmap_s[c]
+        model = fit.scale[c] * np.asarray(model_profile(rr, sa, sp, eta, model_name, orders))
+        at = fit.scale[c] * np.asarray(model_profile(r, sa, sp, eta, model_name, orders))
         ok = profile.mean[:, c] > 0
         ax.errorbar(
             r[ok], profile.mean[ok, c], yerr=profile.stderr[ok, c], fmt=".", ms=3,

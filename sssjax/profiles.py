@@ -36,18 +36,33 @@ with respect to `sigma_a` and `sigmap_s`, NaN-free at `r = 0` and `sigma_a = 0` 
   (closed forms with the exponential integral for every term but one, which is a smooth
   Gauss-Laguerre integral; it matches quadrature of the profile to ~1e-14 in float64).
 
+- `"tabulated"`: exact transport (no diffusion approximation), from a table of
+  `sssjax.reference` Monte Carlo runs shipped with the package (`sssjax/data`, rebuilt by
+  `benchmarks/profile_table.py`): the better dipole corrected by the tabulated log ratio of
+  the Monte Carlo multiple-scattering exitance to it, in reduced units (`r sigmap_t`, reduced
+  albedo `sigmap_s / sigmap_t`, eta 1.0-1.6), interpolated by cubics (see
+  `sssjax._tabulated`). Isotropic scattering was tabulated: for `g != 0` the similarity
+  relation (`sigmap_s = sigma_s (1 - g)`) is the approximation. Its Monte Carlo error is
+  stored with it (`tabulated_error`).
+
+Single scattering under the beam (`single_scatter`, `single_scatter_total`) is the exact
+closed form for a normally incident beam and isotropic phase (tabulated in `eta`), for any
+profile: the diffusion profiles model multiple scattering only, and a photograph sees both.
+
 Cost: `better_dipole` is as cheap as the dipole; `pbd` evaluates 100 point sources per
 distance (about 100 times the arithmetic).
 """
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from . import dipole
+from . import _tabulated, dipole
 from ._numerics import safe_div, safe_sqrt
 from ._registry import Registry
 from .scattering import fresnel_moment, fresnel_moments
@@ -64,9 +79,12 @@ __all__ = [
     "diffusion_coefficient",
     "sigma_tr_better",
     "PBD_DEPTHS",
+    "single_scatter",
+    "single_scatter_total",
+    "tabulated_error",
 ]
 
-PROFILES = ("dipole", "better_dipole", "pbd")
+PROFILES = ("dipole", "better_dipole", "pbd", "tabulated")
 
 # Gauss-Laguerre for the one non-elementary part of the PBD total
 _LAG_X, _LAG_W = np.polynomial.laguerre.laggauss(32)
@@ -268,6 +286,77 @@ def _pbd_total(sigma_a, sigmap_s, eta):
     return k["rho"][..., 0] ** 2 * jnp.mean(per_depth, axis=-1)
 
 
+def _tab_Rd(r, sigma_a, sigmap_s, eta):
+    dt = _dtype(r, sigma_a, sigmap_s, eta)
+    spt, _, logit = _tabulated.reduced(sigma_a, sigmap_s, dt)
+    x = jnp.asarray(r, dt) * spt
+    T = _tabulated.ms_correction(x, logit, jnp.asarray(eta, dt))
+    # T > 80 only far out, where the better dipole has underflowed: keep 0 * e^T finite
+    return _better_Rd(r, sigma_a, sigmap_s, eta) * jnp.exp(jnp.minimum(T, 80.0))
+
+
+def _tab_total(sigma_a, sigmap_s, eta):
+    dt = _dtype(sigma_a, sigmap_s, eta)
+    _, _, logit = _tabulated.reduced(sigma_a, sigmap_s, dt)
+    corr = _tabulated.ms_total_correction(logit, jnp.asarray(eta, dt))
+    return _better_total(sigma_a, sigmap_s, eta) * jnp.exp(corr)
+
+
+@functools.cache
+def _tab_err_filled() -> np.ndarray:
+    """`T_err` with the continued nodes given the error of the nearest precise node."""
+    err = np.asarray(_tabulated.table()["T_err"], np.float64)
+    filled = err.copy()
+    pos = np.arange(err.shape[0])
+    for ia in range(err.shape[1]):
+        for ie in range(err.shape[2]):
+            j = np.nonzero(np.isfinite(err[:, ia, ie]))[0]
+            if j.size:
+                filled[:, ia, ie] = err[j[np.abs(pos[:, None] - j[None, :]).argmin(1)], ia, ie]
+    return filled
+
+
+def tabulated_error(
+    r: ArrayLike, sigma_a: ArrayLike, sigmap_s: ArrayLike, eta: ArrayLike
+) -> np.ndarray:
+    """The tabulated profile's relative Monte Carlo error (one standard error) at `r` (mm)
+    for the coefficients (mm^-1), interpolated like the profile (NumPy, float64). Where the
+    table continues the profile beyond its precise bins, the error of the nearest precise
+    node: a floor, not a bound, there."""
+    tab = _tabulated.table()
+    spt, _, logit = _tabulated.reduced(sigma_a, sigmap_s, jnp.float32)
+    x = jnp.asarray(r, jnp.float32) * spt
+    lx = jnp.log(jnp.maximum(x, float(np.exp(tab["log_x"][0]))))
+    out = _tabulated._interp(
+        jnp.asarray(_tab_err_filled(), jnp.float32),
+        [(lx, tab["log_x"]), (logit, tab["logit"]), (jnp.asarray(eta, jnp.float32), tab["eta"])],
+    )
+    return np.abs(np.asarray(out, np.float64))
+
+
+def single_scatter(r: ArrayLike, sigma_a: ArrayLike, sigmap_s: ArrayLike, eta: ArrayLike) -> Array:
+    """Single-scattering exitance `R_ss(r)` (mm^-2, per unit power entering) of a
+    semi-infinite medium under a normally incident pencil beam: the exact closed form for an
+    isotropic phase function (`sssjax.reference.single_scatter_profile`), tabulated in `eta`
+    (1.0-1.6) and interpolated. With reduced coefficients it is the similarity relation's
+    stand-in for the real (phase-dependent) single scattering.
+
+    **Arguments:** `r` mm; `sigma_a`, `sigmap_s` mm^-1; `eta`. **Returns:** broadcast shape.
+    """
+    dt = _dtype(r, sigma_a, sigmap_s, eta)
+    spt, rho, _ = _tabulated.reduced(sigma_a, sigmap_s, dt)
+    x = jnp.asarray(r, dt) * spt
+    return rho * spt**2 * _tabulated.single_unit(x, jnp.asarray(eta, dt))
+
+
+def single_scatter_total(sigma_a: ArrayLike, sigmap_s: ArrayLike, eta: ArrayLike) -> Array:
+    """`int 2 pi r R_ss(r) dr` of `single_scatter`: the single-scattering total (per unit
+    power entering), dimensionless."""
+    dt = _dtype(sigma_a, sigmap_s, eta)
+    _, rho, _ = _tabulated.reduced(sigma_a, sigmap_s, dt)
+    return rho * _tabulated.single_total_unit(jnp.asarray(eta, dt))
+
+
 # --- the public entry points -----------------------------------------------------------------
 def Rd(
     r: ArrayLike,
@@ -284,7 +373,8 @@ def Rd(
     - `sigma_a`, `sigmap_s`: absorption and reduced scattering coefficients, mm^-1
       (`sigma_a + sigmap_s > 0`).
     - `eta`: relative index of refraction (inside / outside).
-    - `profile`: one of `PROFILES` (`"dipole"`, `"better_dipole"`, `"pbd"`); static.
+    - `profile`: one of `PROFILES` (`"dipole"`, `"better_dipole"`, `"pbd"`,
+      `"tabulated"`); static.
 
     **Returns:** `R_d(r)` in mm^-2, exitance per unit power entering the medium, broadcast
     shape; `int_0^inf 2 pi r R_d(r) dr = Rd_total(..., profile)`.
@@ -294,6 +384,8 @@ def Rd(
         return dipole.Rd(r, sigma_a, sigmap_s, eta)
     if profile == "better_dipole":
         return _better_Rd(r, sigma_a, sigmap_s, eta)
+    if profile == "tabulated":
+        return _tab_Rd(r, sigma_a, sigmap_s, eta)
     return _pbd_Rd(r, sigma_a, sigmap_s, eta)
 
 
@@ -303,7 +395,8 @@ def Rd_total(
     """Total diffuse reflectance `int_0^inf 2 pi r R_d(r) dr` of the chosen profile.
 
     Closed form for `"dipole"` and `"better_dipole"` (the latter tends to 1 as
-    `sigma_a -> 0`); semi-analytic for `"pbd"` (see the module docstring).
+    `sigma_a -> 0`); semi-analytic for `"pbd"` (see the module docstring); for
+    `"tabulated"` the Monte Carlo total, interpolated.
 
     **Arguments:** `sigma_a`, `sigmap_s` in mm^-1; `eta`; `profile` one of `PROFILES`.
 
@@ -314,4 +407,6 @@ def Rd_total(
         return dipole.Rd_total(sigma_a, sigmap_s, eta)
     if profile == "better_dipole":
         return _better_total(sigma_a, sigmap_s, eta)
+    if profile == "tabulated":
+        return _tab_total(sigma_a, sigmap_s, eta)
     return _pbd_total(sigma_a, sigmap_s, eta)

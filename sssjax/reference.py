@@ -296,7 +296,7 @@ def _advance(
             lambda: free,  # room for every free slot: no need to rank them
             lambda: free & (launched + jnp.cumsum(free.astype(jnp.int32)) - 1 < n_total),
         )
-        launched = launched + jnp.sum(new.astype(jnp.int32))
+        launched = launched + jnp.sum(new, dtype=jnp.int32)
         zero = jnp.zeros_like(x)
         x, y, z = jnp.where(new, zero, x), jnp.where(new, zero, y), jnp.where(new, zero, z)
         dx = jnp.where(new, d0x, dx)

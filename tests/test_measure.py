@@ -19,7 +19,7 @@ def analytic_profile(name, r, rel_noise=0.0, seed=0):
 @pytest.mark.parametrize("name", ["marble", "skimmilk", "ketchup", "skin1"])
 def test_exact_profile_recovered(x64, name):
     m, prof = analytic_profile(name, np.linspace(0.2, 40.0, 200))
-    fit = fit_profile(prof, 1.3, r_min=0.5, rel_floor=1e-6)
+    fit = fit_profile(prof, 1.3, orders="multiple", r_min=0.5, rel_floor=1e-6)
     np.testing.assert_allclose(fit.sigma_a, m.sigma_a, rtol=1e-4)
     np.testing.assert_allclose(fit.sigmap_s, m.sigmap_s, rtol=1e-4)
 
@@ -27,7 +27,7 @@ def test_exact_profile_recovered(x64, name):
 @pytest.mark.parametrize("seed", range(4))
 def test_noisy_profile_within_reported_uncertainty(x64, seed):
     m, prof = analytic_profile("marble", np.linspace(0.2, 30.0, 150), rel_noise=0.02, seed=seed)
-    fit = fit_profile(prof, 1.3, r_min=0.5, rel_floor=0.0)
+    fit = fit_profile(prof, 1.3, orders="multiple", r_min=0.5, rel_floor=0.0)
     for got, true, se in (
         (fit.sigma_a, m.sigma_a, fit.sigma_a_stderr),
         (fit.sigmap_s, m.sigmap_s, fit.sigmap_s_stderr),
@@ -42,8 +42,8 @@ def test_free_scale_widens_sigma_a_error_and_sigma_a_is_the_weak_one(x64):
     # are (chi^2/dof < 1), so the comparison isolates the effect of freeing the scale
     m, prof = analytic_profile("marble", np.linspace(0.2, 10.0, 60))
     prof.stderr = 0.02 * prof.mean
-    fixed = fit_profile(prof, 1.3, r_min=0.5, rel_floor=0.0)
-    free = fit_profile(prof, 1.3, r_min=0.5, rel_floor=0.0, free_scale=True)
+    fixed = fit_profile(prof, 1.3, orders="multiple", r_min=0.5, rel_floor=0.0)
+    free = fit_profile(prof, 1.3, orders="multiple", r_min=0.5, rel_floor=0.0, free_scale=True)
     assert np.all(free.sigma_a_stderr > fixed.sigma_a_stderr)
     # over 10 mm (about one diffusion length of red marble), sigma_a is far less certain
     assert np.all(fixed.sigma_a_stderr / fixed.sigma_a > 2 * fixed.sigmap_s_stderr / fixed.sigmap_s)
@@ -63,7 +63,7 @@ def test_radial_profile_of_radial_image_and_fit(x64):
     ref = np.asarray(dipole.Rd(prof.r[:, None], m.sigma_a, m.sigmap_s, 1.3))
     far = prof.r > 1.0
     np.testing.assert_allclose(prof.mean[far], ref[far], rtol=5e-3)
-    fit = fit_profile(prof, 1.3, r_min=1.0, rel_floor=2e-3)
+    fit = fit_profile(prof, 1.3, orders="multiple", r_min=1.0, rel_floor=2e-3)
     np.testing.assert_allclose(fit.sigma_a, m.sigma_a, rtol=0.02)
     np.testing.assert_allclose(fit.sigmap_s, m.sigmap_s, rtol=0.02)
 
@@ -84,14 +84,14 @@ def test_better_profiles_recovered_by_their_own_model_and_biased_under_the_dipol
     r = np.linspace(0.2, 20.0, 100)
     mean = np.asarray(profiles.Rd(r[:, None], m.sigma_a, m.sigmap_s, 1.3, model), np.float64)
     prof = Profile(r=r, mean=mean, stderr=1e-9 * mean, counts=np.full(len(r), 100))
-    own = fit_profile(prof, 1.3, r_min=0.5, rel_floor=1e-6, model=model)
+    own = fit_profile(prof, 1.3, orders="multiple", r_min=0.5, rel_floor=1e-6, model=model)
     assert own.model == model
     # measured: exact to 1e-15
     np.testing.assert_allclose(own.sigma_a, m.sigma_a, rtol=1e-6)
     np.testing.assert_allclose(own.sigmap_s, m.sigmap_s, rtol=1e-6)
     # the classic dipole cannot fit this profile: its coefficients land measurably elsewhere
     # (measured for skin1: sigma_a -8..-19% on the better dipole, sigmap_s -14..-46% on PBD)
-    classic = fit_profile(prof, 1.3, r_min=0.5, rel_floor=1e-6)
+    classic = fit_profile(prof, 1.3, orders="multiple", r_min=0.5, rel_floor=1e-6)
     bias = np.concatenate(
         [classic.sigma_a / np.asarray(m.sigma_a), classic.sigmap_s / np.asarray(m.sigmap_s)]
     )
@@ -102,8 +102,8 @@ def test_unfinished_profile_fit_is_not_reported_converged():
     """Float32 fits count as converged once the remaining Gauss-Newton step is within 1% of
     the standard error; a fit stopped after one step from far away must not pass that."""
     m, prof = analytic_profile("marble", np.linspace(0.5, 40.0, 120), rel_noise=0.01)
-    stopped = fit_profile(prof, 1.3, init=(0.1, 10.0), max_steps=1)
+    stopped = fit_profile(prof, 1.3, orders="multiple", init=(0.1, 10.0), max_steps=1)
     assert not any(stopped.converged)
-    done = fit_profile(prof, 1.3, init=(0.1, 10.0))
+    done = fit_profile(prof, 1.3, orders="multiple", init=(0.1, 10.0))
     assert all(done.converged)
     np.testing.assert_allclose(done.sigmap_s, m.sigmap_s, rtol=0.05)

@@ -103,7 +103,9 @@ def _jit_rd(profile):
     return jax.jit(lambda r, sa, sp: profiles.Rd(r, sa, sp, 1.3, profile))
 
 
-@pytest.mark.parametrize("profile", PROFILES)
+# the tabulated total is the Monte Carlo's own, consistent with its profile to the table's
+# error only (tests/test_tabulated.py)
+@pytest.mark.parametrize("profile", [p for p in PROFILES if p != "tabulated"])
 @pytest.mark.parametrize("name", NAMES)
 def test_profile_integrates_to_its_total(x64, profile, name):
     for c in range(3):

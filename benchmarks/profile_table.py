@@ -1,0 +1,319 @@
+"""Build the table behind `profile = "tabulated"` from `sssjax.reference` (rerunnable).
+
+    python benchmarks/profile_table.py                 # run what is missing, then assemble
+    python benchmarks/profile_table.py --jobs 2 --passes 2
+    python benchmarks/profile_table.py --assemble      # only rebuild the table from the runs
+
+The exitant profile of a semi-infinite medium under a normally incident pencil beam depends,
+in reduced units (`x = r sigmap_t`, `sigmap_t = sigma_a + sigmap_s`), only on the reduced
+albedo `a' = sigmap_s / sigmap_t` and the relative index `eta` (isotropic scattering; for
+`g != 0` the similarity relation `sigmap_s = sigma_s (1 - g)` is the approximation). For
+every node of the grid
+
+- `eta` in 1.0, 1.15, ..., 1.6 (5 nodes) and
+- `logit a'` in -4.5, -4.0, ..., 11.5 (33 nodes, `a'` from 0.011 to 0.99999),
+
+`sssjax.reference.simulate` traces `--photons` photons per pass (seed `SEED0 + 1000 pass +
+100 i_eta + i_a`, fixed), with `sigmap_t = 1`, into log bins of `x` from 0.01 to 316
+(16 per decade). Each run is saved under `--runs` (default `out/profile_table/runs`), so an
+interrupted build resumes and more passes (independent seeds) can be added later; the
+assembly merges every pass it finds.
+
+**What the table stores** (`sssjax/data/tabulated_profile.npz`):
+
+- `T[x, a', eta]`: the multiple-scattering profile as a correction to d'Eon's better dipole,
+  `log(MC bin mean / better-dipole bin mean)` (both averaged over the same annulus, so the
+  wide outer bins need no point-value approximation), smoothed along `log x` by a local
+  quadratic fit (tricube window of +-3 bins, weights 1 / variance). Where the Monte Carlo has
+  no precise bins (relative error above 20 %: the far tail of dark media, the innermost bins)
+  the correction is continued: beyond the last precise bin along the exact asymptotic decay
+  (`T` grows by `kappa_bd - kappa` per reduced mean free path, where `kappa = 1 / nu_0` is
+  Case's discrete eigenvalue of isotropic transport, `artanh(kappa) / kappa = 1 / a'`, and
+  `kappa_bd` the better dipole's `sigma_tr / sigmap_t`), before the first one as a constant.
+- `T_err`: one standard error of `T` (relative error of the profile), NaN where continued.
+- `ms_total`, `ms_total_err`: the Monte Carlo total of multiple scattering (per unit power
+  entering; its error includes the photons lost beyond `r_cap`, counted as a bias bound),
+  and `log_total_ratio`, its log ratio to the better dipole's total (what is interpolated).
+- `log_G[x, eta_S]`, `S_total[eta_S]`: single scattering per unit albedo (`sigma_t = 1`),
+  exact (`sssjax.reference.single_scatter_profile` / `_total` quadrature, point values), on
+  a finer grid of 25 `eta_S` nodes, stored as `log S + k x` with its far decay
+  `e^{-k x}`, `k = eta + sqrt(eta^2 - 1)` (the critical-angle exits), taken out.
+
+`sssjax.profiles` interpolates `T` and `log S` with Catmull-Rom cubics in `(log x, logit a',
+eta)`, so Jacobians are continuous. The off-grid check of the table against fresh runs is
+`tests/test_tabulated.py`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures as cf
+import datetime
+import math
+import multiprocessing as mp
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+TABLE = ROOT / "sssjax" / "data" / "tabulated_profile.npz"
+ETAS = np.round(np.linspace(1.0, 1.6, 5), 6)
+LOGITS = np.arange(-4.5, 11.5 + 1e-9, 0.5)
+PER_DECADE = 16
+X_LO, X_HI = 0.01, 10**2.5
+EDGES = np.concatenate([[0.0], np.geomspace(X_LO, X_HI, int(round(PER_DECADE * 4.5)) + 1)])
+SEED0 = 7_000_000
+REL_OK = 0.2  # bins with a larger relative standard error are not used
+HALF = 3  # smoothing half-window, bins
+
+
+def albedo(logit):
+    return 1.0 / (1.0 + np.exp(-np.asarray(logit, np.float64)))
+
+
+def run_name(i_eta, i_a, p):
+    return f"eta{i_eta}_a{i_a:02d}_p{p}.npz"
+
+
+def _run_one(args):
+    """One node and pass, in a worker process (float32 walk)."""
+    i_eta, i_a, p, photons, runs = args
+    out = Path(runs) / run_name(i_eta, i_a, p)
+    if out.exists():
+        return str(out), 0.0
+    from sssjax import reference
+
+    a = float(albedo(LOGITS[i_a]))
+    t0 = time.perf_counter()
+    ref = reference.simulate(
+        1.0 - a,
+        a,
+        0.0,
+        float(ETAS[i_eta]),
+        n_photons=photons,
+        seed=SEED0 + 1000 * p + 100 * i_eta + i_a,
+        r_edges=EDGES,
+    ).entered()
+    tmp = out.with_suffix(".tmp.npz")
+    np.savez(
+        tmp,
+        profile=ref.multiple_profile,
+        stderr=ref.multiple_profile_stderr,
+        counts=ref.counts,
+        total=ref.multiple,
+        total_stderr=ref.multiple_stderr,
+        lost=ref.lost,
+        n_photons=ref.n_photons,
+        steps=ref.steps_per_photon,
+    )
+    os.replace(tmp, out)
+    return str(out), time.perf_counter() - t0
+
+
+def run(photons: int, passes: int, jobs: int, runs: Path):
+    runs.mkdir(parents=True, exist_ok=True)
+    # dearest first (high albedo walks longest), so the pool stays busy to the end
+    todo = [
+        (ie, ia, p, photons, str(runs))
+        for p in range(passes)
+        for ia in reversed(range(LOGITS.size))
+        for ie in range(ETAS.size)
+        if not (runs / run_name(ie, ia, p)).exists()
+    ]
+    print(
+        f"profile table: {len(todo)} runs to do ({photons} photons each, {jobs} jobs)", flush=True
+    )
+    t0 = time.perf_counter()
+    ctx = mp.get_context("spawn")
+    with cf.ProcessPoolExecutor(jobs, mp_context=ctx) as ex:
+        for k, (name, sec) in enumerate(ex.map(_run_one, todo), 1):
+            el = time.perf_counter() - t0
+            print(
+                f"  [{k}/{len(todo)}] {Path(name).name} {sec:.0f} s (elapsed {el:.0f} s)",
+                flush=True,
+            )
+
+
+def _merged(runs: Path, ie: int, ia: int):
+    files = sorted(runs.glob(f"eta{ie}_a{ia:02d}_p*.npz"))
+    if not files:
+        raise SystemExit(f"profile table: no runs for eta node {ie}, albedo node {ia} in {runs}")
+    d = [dict(np.load(f)) for f in files]
+    n = np.array([float(x["n_photons"]) for x in d])
+    N = n.sum()
+
+    def mean(k):
+        return sum(ni * x[k] for ni, x in zip(n, d, strict=True)) / N
+
+    def err(k):
+        return np.sqrt(sum((ni * x[k]) ** 2 for ni, x in zip(n, d, strict=True))) / N
+
+    return dict(
+        profile=mean("profile"),
+        stderr=err("stderr"),
+        counts=sum(x["counts"] for x in d),
+        total=float(mean("total")),
+        total_stderr=float(err("total_stderr")),
+        lost=float(mean("lost")),
+        n_photons=int(N),
+        passes=len(files),
+    )
+
+
+def case_kappa(a: float) -> float:
+    """`kappa = 1 / nu_0` of isotropic transport at single-scattering albedo `a`:
+    `artanh(k) / k = 1 / a` (bisection in float64; `kappa -> 1` as `a -> 0`)."""
+    lo, hi = 0.0, 1.0
+    for _ in range(200):
+        k = 0.5 * (lo + hi)
+        f = math.atanh(k) / k if 0 < k < 1 else (1.0 if k == 0 else math.inf)
+        if f < 1.0 / a:
+            lo = k
+        else:
+            hi = k
+    return 0.5 * (lo + hi)
+
+
+def _smooth(lx, t, var, ok):
+    """Local weighted quadratic fit of `t` on `lx` at every node; returns the value and its
+    variance (NaN where no precise bin is in the window)."""
+    n = lx.size
+    out, out_var = np.full(n, np.nan), np.full(n, np.nan)
+    for i in range(n):
+        j = np.arange(max(i - HALF, 0), min(i + HALF + 1, n))
+        j = j[ok[j]]
+        if j.size < 3 or not ok[i]:
+            continue
+        u = (lx[j] - lx[i]) / (lx[1] - lx[0])
+        k = (1 - (np.abs(u) / (HALF + 1)) ** 3) ** 3
+        A = np.stack([np.ones_like(u), u, u * u], 1)
+        W = k / var[j]
+        M = np.linalg.pinv(A.T @ (W[:, None] * A))
+        coef = M @ (A.T @ (W * t[j]))
+        # the variance of the kernel-weighted estimate with real weights 1 / var
+        C = M @ (A.T @ ((W * W * var[j])[:, None] * A)) @ M
+        out[i], out_var[i] = coef[0], C[0, 0]
+    return out, out_var
+
+
+def assemble(runs: Path, table: Path):
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+
+    from sssjax import profiles, reference
+
+    lo, hi = EDGES[1:-1], EDGES[2:]
+    x = np.sqrt(lo * hi)  # nodes: geometric bin centres (uniform in log x)
+    lx = np.log(x)
+    gx, gw = np.polynomial.legendre.leggauss(16)
+    rq = lo[:, None] + (hi - lo)[:, None] * (gx + 1) / 2  # (bins, 16)
+    wq = (hi - lo)[:, None] / 2 * gw * 2 * np.pi * rq
+    area = np.pi * (hi**2 - lo**2)
+    na, ne, nx = LOGITS.size, ETAS.size, x.size
+    T = np.zeros((nx, na, ne))
+    T_err = np.full((nx, na, ne), np.nan)
+    tot = np.zeros((na, ne))
+    tot_err = np.zeros((na, ne))
+    log_total_ratio = np.zeros((na, ne))
+    slope = np.zeros(na)
+    photons = np.zeros((na, ne), np.int64)
+    for ia, lg in enumerate(LOGITS):
+        a = float(albedo(lg))
+        k_bd = float(profiles.sigma_tr_better(1.0 - a, a))
+        slope[ia] = k_bd - case_kappa(a)
+        for ie, eta in enumerate(ETAS):
+            m = _merged(runs, ie, ia)
+            photons[ia, ie] = m["n_photons"]
+            bd = np.asarray(profiles.Rd(jnp.asarray(rq), 1.0 - a, a, float(eta), "better_dipole"))
+            bd_mean = np.sum(wq * bd, 1) / area
+            mc, se = m["profile"][1:], m["stderr"][1:]
+            ok = (mc > 0) & (se < REL_OK * np.where(mc > 0, mc, 1)) & (m["counts"][1:] >= 20)
+            t = np.where(ok, np.log(np.where(mc > 0, mc, 1) / bd_mean), 0.0)
+            var = np.where(ok, (se / np.where(mc > 0, mc, 1)) ** 2, np.inf)
+            s, sv = _smooth(lx, t, var, ok)
+            good = np.isfinite(s)
+            if not good.any():
+                raise SystemExit(f"profile table: no precise bin at a'={a:.5g}, eta={eta}")
+            first, last = np.argmax(good), nx - 1 - np.argmax(good[::-1])
+            col = s.copy()
+            col[:first] = s[first]
+            col[last + 1 :] = s[last] + slope[ia] * (x[last + 1 :] - x[last])
+            # interior holes (an isolated imprecise bin): linear in log x
+            hole = ~good & (np.arange(nx) > first) & (np.arange(nx) < last)
+            col[hole] = np.interp(lx[hole], lx[good], s[good])
+            T[:, ia, ie] = col
+            T_err[good, ia, ie] = np.sqrt(sv[good])
+            tot[ia, ie] = m["total"]
+            tot_err[ia, ie] = math.hypot(m["total_stderr"], m["lost"])
+            bd_tot = float(profiles.Rd_total(1.0 - a, a, float(eta), "better_dipole"))
+            log_total_ratio[ia, ie] = math.log(m["total"] / bd_tot)
+    # single scattering is a quadrature, not a walk: a finer eta grid of its own; stored as
+    # log S + k(eta) x, with its exact far decay e^{-k x}, k = eta + sqrt(eta^2 - 1) (the
+    # grazing exits at the critical angle), removed, which leaves a smooth function of eta
+    S_ETAS = np.round(np.linspace(1.0, 1.6, 25), 6)
+    ns = S_ETAS.size
+    log_G = np.zeros((nx, ns))
+    S_total = np.zeros(ns)
+    for ie, eta in enumerate(S_ETAS):
+        t_in = 1.0 - float(reference._fresnel_np(1.0, float(eta)))
+        pts = np.stack([x * (1 - 1e-5), x * (1 + 1e-5)], 1).ravel()
+        S = reference.single_scatter_profile(pts, 0.0, 1.0, 0.0, float(eta))[::2] / t_in
+        S_total[ie] = reference.single_scatter_total(0.0, 1.0, 0.0, float(eta)) / t_in
+        k = float(eta) + math.sqrt(max(float(eta) ** 2 - 1.0, 0.0))
+        with np.errstate(divide="ignore"):
+            lg = np.log(S) + k * x
+        # far out the quadrature underflows: hold the (slowly varying) remainder
+        bad = ~np.isfinite(lg) | (S < 1e-280)
+        if bad.any():
+            lg[bad] = lg[np.argmax(bad) - 1]
+        log_G[:, ie] = lg
+    table.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(
+        table,
+        log_x=lx,
+        logit=LOGITS,
+        eta=ETAS,
+        T=T.astype(np.float32),
+        T_err=T_err.astype(np.float32),
+        slope=slope.astype(np.float32),
+        ms_total=tot.astype(np.float32),
+        ms_total_err=tot_err.astype(np.float32),
+        log_total_ratio=log_total_ratio.astype(np.float32),
+        eta_S=S_ETAS,
+        log_G=log_G.astype(np.float32),
+        S_total=S_total.astype(np.float32),
+        photons=photons,
+        built=np.array(datetime.date.today().isoformat()),
+        seed0=np.array(SEED0),
+    )
+    rel = T_err[np.isfinite(T_err)]
+    print(
+        f"profile table: wrote {table} ({table.stat().st_size / 1024:.0f} KiB); "
+        f"{photons.min()}-{photons.max()} photons per node; relative error of the precise "
+        f"nodes: median {np.median(rel):.2%}, 90th percentile {np.percentile(rel, 90):.2%}; "
+        f"totals: median {np.median(tot_err / tot):.2%}"
+    )
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--photons", type=int, default=65536, help="photons per node and pass")
+    ap.add_argument("--passes", type=int, default=1, help="independent passes (seeds) per node")
+    ap.add_argument("--jobs", type=int, default=2, help="worker processes")
+    ap.add_argument("--runs", type=Path, default=ROOT / "out" / "profile_table" / "runs")
+    ap.add_argument("--table", type=Path, default=TABLE)
+    ap.add_argument("--assemble", action="store_true", help="only assemble the existing runs")
+    a = ap.parse_args()
+    t0 = time.perf_counter()
+    if not a.assemble:
+        run(a.photons, a.passes, a.jobs, a.runs)
+    assemble(a.runs, a.table)
+    print(f"profile table: done in {time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
