@@ -1,7 +1,7 @@
 """Build the table behind `profile = "tabulated"` from `sssjax.reference` (rerunnable).
 
     python benchmarks/profile_table.py                 # run what is missing, then assemble
-    python benchmarks/profile_table.py --jobs 2 --passes 2
+    python benchmarks/profile_table.py --passes 2 --budget 4e7   # the shipped table
     python benchmarks/profile_table.py --assemble      # only rebuild the table from the runs
 
 The exitant profile of a semi-infinite medium under a normally incident pencil beam depends,
@@ -35,7 +35,7 @@ assembly merges every pass it finds.
   entering; its error includes the photons lost beyond `r_cap`, counted as a bias bound),
   and `log_total_ratio`, its log ratio to the better dipole's total (what is interpolated).
 - `log_G[x, eta_S]`, `S_total[eta_S]`: single scattering per unit albedo (`sigma_t = 1`),
-  exact (`sssjax.reference.single_scatter_profile` / `_total` quadrature, point values), on
+  exact (`sssjax.reference.single_scatter_exitance` / `_total` quadrature, point values), on
   a finer grid of 25 `eta_S` nodes, stored as `log S + k x` with its far decay
   `e^{-k x}`, `k = eta + sqrt(eta^2 - 1)` (the critical-angle exits), taken out.
 
@@ -67,6 +67,7 @@ EDGES = np.concatenate([[0.0], np.geomspace(X_LO, X_HI, int(round(PER_DECADE * 4
 SEED0 = 7_000_000
 REL_OK = 0.2  # bins with a larger relative standard error are not used
 HALF = 3  # smoothing half-window, bins
+MAX_PHOTONS, MIN_PHOTONS = 4_000_000, 16_384  # per node and pass, for --budget passes
 
 
 def albedo(logit):
@@ -112,19 +113,30 @@ def _run_one(args):
     return str(out), time.perf_counter() - t0
 
 
-def run(photons: int, passes: int, jobs: int, runs: Path):
+def run(photons: int, passes: int, jobs: int, runs: Path, budget: float | None = None):
+    """Pass 0 traces `photons` per node. With a `budget` (free flights per node), every
+    later pass traces `budget / steps` photons (at most `MAX_PHOTONS`), `steps` the mean
+    free flights per photon that pass 0 measured: cheap (dark) nodes get many photons,
+    where their relative error was largest."""
     runs.mkdir(parents=True, exist_ok=True)
+
+    def n_for(ie, ia, p):
+        if p == 0 or budget is None:
+            return photons
+        first = runs / run_name(ie, ia, 0)
+        steps = float(np.load(first)["steps"]) if first.exists() else 1.0
+        return int(min(MAX_PHOTONS, budget / max(steps, 1.0)))
+
     # dearest first (high albedo walks longest), so the pool stays busy to the end
     todo = [
-        (ie, ia, p, photons, str(runs))
+        (ie, ia, p, n_for(ie, ia, p), str(runs))
         for p in range(passes)
         for ia in reversed(range(LOGITS.size))
         for ie in range(ETAS.size)
         if not (runs / run_name(ie, ia, p)).exists()
     ]
-    print(
-        f"profile table: {len(todo)} runs to do ({photons} photons each, {jobs} jobs)", flush=True
-    )
+    todo = [t for t in todo if t[3] >= MIN_PHOTONS]
+    print(f"profile table: {len(todo)} runs to do ({jobs} jobs)", flush=True)
     t0 = time.perf_counter()
     ctx = mp.get_context("spawn")
     with cf.ProcessPoolExecutor(jobs, mp_context=ctx) as ex:
@@ -260,8 +272,7 @@ def assemble(runs: Path, table: Path):
     S_total = np.zeros(ns)
     for ie, eta in enumerate(S_ETAS):
         t_in = 1.0 - float(reference._fresnel_np(1.0, float(eta)))
-        pts = np.stack([x * (1 - 1e-5), x * (1 + 1e-5)], 1).ravel()
-        S = reference.single_scatter_profile(pts, 0.0, 1.0, 0.0, float(eta))[::2] / t_in
+        S = reference.single_scatter_exitance(x, 0.0, 1.0, 0.0, float(eta)) / t_in
         S_total[ie] = reference.single_scatter_total(0.0, 1.0, 0.0, float(eta)) / t_in
         k = float(eta) + math.sqrt(max(float(eta) ** 2 - 1.0, 0.0))
         with np.errstate(divide="ignore"):
@@ -304,13 +315,18 @@ def main():
     ap.add_argument("--photons", type=int, default=65536, help="photons per node and pass")
     ap.add_argument("--passes", type=int, default=1, help="independent passes (seeds) per node")
     ap.add_argument("--jobs", type=int, default=2, help="worker processes")
+    ap.add_argument(
+        "--budget",
+        type=float,
+        help="passes after the first: free flights per node (photons = budget / steps)",
+    )
     ap.add_argument("--runs", type=Path, default=ROOT / "out" / "profile_table" / "runs")
     ap.add_argument("--table", type=Path, default=TABLE)
     ap.add_argument("--assemble", action="store_true", help="only assemble the existing runs")
     a = ap.parse_args()
     t0 = time.perf_counter()
     if not a.assemble:
-        run(a.photons, a.passes, a.jobs, a.runs)
+        run(a.photons, a.passes, a.jobs, a.runs, a.budget)
     assemble(a.runs, a.table)
     print(f"profile table: done in {time.perf_counter() - t0:.0f} s")
 

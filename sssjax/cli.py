@@ -323,9 +323,11 @@ def _cmd_measure(args: argparse.Namespace) -> int:
     # annuli, where the steep profile's annulus mean and its value at the mean radius differ
     # a photograph holds every order; sssjax's diffusion transport renders a beam's
     # multiple scattering only
-    rendered_ms = args.orders is None and meta.get("transport") == "diffusion"
-    rendered_ms = rendered_ms and bool(meta.get("beams"))
+    diffusion_render = meta.get("transport") == "diffusion" and bool(meta.get("beams"))
+    rendered_ms = args.orders is None and diffusion_render
     orders = args.orders or ("multiple" if rendered_ms else "all")
+    # exact transport for a photograph; a diffusion render is fitted with its own profile
+    model = args.model or (meta.get("profile", "dipole") if diffusion_render else "tabulated")
     r_min = args.r_min
     if r_min is None:
         r_min = 2.0 * pixel if orders == "all" else 1.0
@@ -337,13 +339,13 @@ def _cmd_measure(args: argparse.Namespace) -> int:
         )
     print(
         f"{path}: {w}x{h} px, {pixel:.4g} mm/px, centre ({center[0]:.1f}, {center[1]:.1f}) px, "
-        f"eta {eta:g}, r {r_min:g}..{prof.r.max():.1f} mm, model {args.model}, "
+        f"eta {eta:g}, r {r_min:g}..{prof.r.max():.1f} mm, model {model}, "
         f"orders {orders}"
         + (" (a diffusion-transport render: no single scattering), " if rendered_ms else ", ")
         + ("free intensity scale" if free else f"beam power {np.ravel(power).tolist()} W")
     )
     _identifiability(prof, eta, r_min, orders)
-    res = fit_profile(prof, eta, r_min=r_min, free_scale=free, model=args.model, orders=orders)
+    res = fit_profile(prof, eta, r_min=r_min, free_scale=free, model=model, orders=orders)
     print(f"{'ch':<3} {'sigma_a [1/mm]':>22} {'sigmap_s [1/mm]':>22} {'scale':>16}  steps")
     for c in range(3):
         sc = f"{res.scale[c]:.4g} +- {res.scale_stderr[c]:.2g}" if free else "1 (known)"
@@ -366,7 +368,7 @@ def _cmd_measure(args: argparse.Namespace) -> int:
         "eta": eta,
         "r_min_mm": r_min,
         "free_scale": free,
-        "model": args.model,
+        "model": model,
         "orders": orders,
         "units": "coefficients 1/mm",
         **{
@@ -582,10 +584,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--r-max", type=float, help="largest radius, mm (default: image edge)")
     s.add_argument(
         "--model",
-        default="dipole",
         choices=PROFILES,
-        help="profile to fit (default: the classic dipole; tabulated is exact transport; "
-        "see docs/accuracy.md)",
+        help="profile to fit (default: tabulated, exact transport; for an image that "
+        "sssjax's diffusion transport rendered, its own profile; see docs/accuracy.md)",
     )
     s.add_argument("--incidence", type=float, default=0.0, help="beam angle from normal, deg")
     s.add_argument("--view-angle", type=float, default=0.0, help="camera angle from normal")

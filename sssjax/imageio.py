@@ -371,8 +371,8 @@ def render_metadata(scene, **extra: Any) -> dict[str, Any]:
     mm), the translucent media (coefficients in 1/mm), the beam lights, the version and the
     units; `extra` (the `seed`, or a viewer's `seeds` and total `spp`) is added last.
 
-    `sssjax measure` reads `pixel_size_mm`, `media` (`eta`), `beams` and `transport` back
-    from it.
+    `sssjax measure` reads `pixel_size_mm`, `media` (`eta`), `beams`, `transport` and
+    `profile` back from it.
     """
     from ._version import __version__
 
@@ -406,6 +406,7 @@ def render_metadata(scene, **extra: Any) -> dict[str, Any]:
     # `sssjax measure` needs it: the diffusion transport renders a beam's multiple
     # scattering only (no single scattering under the beam)
     meta["transport"] = scene.sss.transport
+    meta["profile"] = scene.sss.profile
     beams = [b for b in scene.lights if b.kind == "beam"]
     if beams:
         meta["beams"] = [

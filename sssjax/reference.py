@@ -83,6 +83,7 @@ __all__ = [
     "default_edges",
     "single_scatter_total",
     "single_scatter_profile",
+    "single_scatter_exitance",
 ]
 
 # columns of the per-batch tally: the weight leaving, the number of exit events, and the
@@ -794,6 +795,50 @@ def single_scatter_total(
     return float(t_in * sigma_s / (sigma_a + sigma_s) * integral)
 
 
+def _single_nodes(g: float, eta: float, n_panels: int):
+    """Quadrature in the exit polar angle `theta` (`mu = cos theta`) for single scattering:
+    panels geometric towards `theta = 0`, where the factor `e^{-k a / sin theta}` of a small
+    radius `a` varies on the scale `theta ~ a sigma_t`, and towards the critical angle, where
+    the Fresnel transmittance has a square-root kink (and far from the beam all the light
+    leaves). Returns `mu`, `sin theta`, the weights in `mu` and the angular factor."""
+    theta_c = math.asin(1.0 / eta) if eta > 1 else math.pi / 2
+    half = np.geomspace(1e-9, theta_c / 2, n_panels // 2)
+    panels = np.unique(np.concatenate([[0.0], half, theta_c - half[::-1], [theta_c]]))
+    x, wx = np.polynomial.legendre.leggauss(24)
+    lo, hi = panels[:-1, None], panels[1:, None]
+    theta = (lo + (hi - lo) * (x + 1) / 2).ravel()
+    wmu = ((hi - lo) / 2 * wx).ravel() * np.sin(theta)  # d mu = sin theta d theta
+    mu, s = np.cos(theta), np.sin(theta)
+    base = mu * _hg(-mu, g) * (1.0 - _fresnel_np(mu, 1.0 / eta)) / (1.0 + mu)
+    return mu, s, wmu, base
+
+
+def single_scatter_exitance(
+    r: ArrayLike,
+    sigma_a: float,
+    sigma_s: float,
+    g: float = 0.0,
+    eta: float = 1.3,
+    n_panels: int = 48,
+) -> np.ndarray:
+    """Exact single-scattering exitance at distances `r` > 0 (mm), normal incidence: the
+    point value (the derivative in `r` of `single_scatter_profile`'s annulus integral,
+    `albedo int base(mu) (k / s) e^{-k r / s} dmu / r`), without the cancellation of a
+    narrow annulus far from the beam.
+
+    **Returns:** `r`'s shape, mm^-2 per unit incident power.
+    """
+    r = np.asarray(r, np.float64)
+    sigma_t = sigma_a + sigma_s
+    mu, s, wmu, base = _single_nodes(g, eta, n_panels)
+    k = sigma_t * (1.0 + mu)
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+        ex = np.exp(-k * r[..., None] / s) * (k / s)
+    ex = np.nan_to_num(ex, nan=0.0, posinf=0.0)
+    t_in = 1.0 - float(_fresnel_np(1.0, eta))
+    return t_in * sigma_s / sigma_t * np.sum(wmu * base * ex, axis=-1) / r
+
+
 def single_scatter_profile(
     r_edges: ArrayLike,
     sigma_a: float,
@@ -818,19 +863,8 @@ def single_scatter_profile(
     """
     edges = np.asarray(r_edges, np.float64)
     sigma_t = sigma_a + sigma_s
-    # in theta (mu = cos theta), on panels geometric towards theta = 0, where the factor
-    # e^{-k a / sin theta} of a small radius a varies on the scale theta ~ a sigma_t, and
-    # towards the critical angle, where the Fresnel transmittance has a square-root kink
-    theta_c = math.asin(1.0 / eta) if eta > 1 else math.pi / 2
-    half = np.geomspace(1e-9, theta_c / 2, n_panels // 2)
-    panels = np.unique(np.concatenate([[0.0], half, theta_c - half[::-1], [theta_c]]))
-    x, wx = np.polynomial.legendre.leggauss(24)
-    lo, hi = panels[:-1, None], panels[1:, None]
-    theta = (lo + (hi - lo) * (x + 1) / 2).ravel()
-    wmu = ((hi - lo) / 2 * wx).ravel() * np.sin(theta)  # d mu = sin theta d theta
-    mu, s = np.cos(theta), np.sin(theta)
+    mu, s, wmu, base = _single_nodes(g, eta, n_panels)
     k = sigma_t * (1.0 + mu)
-    base = mu * _hg(-mu, g) * (1.0 - _fresnel_np(mu, 1.0 / eta)) / (1.0 + mu)
     with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
         ex = np.exp(-k[None, :] * edges[:, None] / s[None, :])  # (edges, nodes)
     ex = np.where(np.isfinite(edges)[:, None], np.nan_to_num(ex, nan=0.0), 0.0)

@@ -91,7 +91,7 @@ def test_sss_profile_setting():
         "shapes": [{"type": "sphere", "material": "m", "radius": 1.0}],
     }
     assert load_scene(base).sss.profile == "dipole"  # the default
-    for name in ("dipole", "better_dipole", "pbd"):
+    for name in ("dipole", "better_dipole", "pbd", "tabulated"):
         assert load_scene({**base, "sss": {"profile": name}}).sss.profile == name
     scene = load_scene(base).with_settings(sss_profile="pbd")
     assert scene.sss.profile == "pbd"
