@@ -251,9 +251,20 @@ def assemble(runs: Path, table: Path):
             if not good.any():
                 raise SystemExit(f"profile table: no precise bin at a'={a:.5g}, eta={eta}")
             first, last = np.argmax(good), nx - 1 - np.argmax(good[::-1])
+            # the tail anchor: the last precise bin alone carries 10-20% noise, and a bright
+            # medium's sigma_a rests on this tail; so the continuation starts from a
+            # weighted fit of `T - slope x` over the last half decade of precise bins, to
+            # which the smoothed values are blended linearly in log x across that window
+            win = good & (x >= x[last] / 10**0.5)
+            wv = 1.0 / sv[win]
+            c0 = np.sum(wv * (s[win] - slope[ia] * x[win])) / np.sum(wv)
+            line = c0 + slope[ia] * x
+            j = np.nonzero(win)[0]
+            t = (lx[j] - lx[j[0]]) / max(lx[last] - lx[j[0]], 1e-12)
+            s[j] = (1 - t) * s[j] + t * line[j]
             col = s.copy()
             col[:first] = s[first]
-            col[last + 1 :] = s[last] + slope[ia] * (x[last + 1 :] - x[last])
+            col[last + 1 :] = line[last + 1 :]
             # interior holes (an isolated imprecise bin): linear in log x
             hole = ~good & (np.arange(nx) > first) & (np.arange(nx) < last)
             col[hole] = np.interp(lx[hole], lx[good], s[good])
