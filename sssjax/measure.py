@@ -25,7 +25,13 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .profiles import Rd, check_profile, single_scatter, tabulated_error
+from .profiles import (
+    Rd,
+    check_profile,
+    single_scatter,
+    tabulated_error,
+    tabulated_level_error,
+)
 
 __all__ = [
     "Profile",
@@ -135,7 +141,10 @@ def fit_profile(
     model adds `sssjax.profiles.single_scatter`, the exact single scattering under a normal
     beam, so the centre of the profile can be used) or `"multiple"` (multiple scattering
     only, as the diffusion profiles model it). With `model="tabulated"` the table's own
-    relative Monte Carlo error is added to each annulus's in quadrature.
+    relative Monte Carlo error is added to each annulus's in quadrature, and the error of its
+    absolute level (`sssjax.profiles.tabulated_level_error`) to the covariance as one error
+    common to all annuli (for bright media over a few diffusion lengths `sigma_a` rests on
+    that level).
 
     **Returns:** a `ProfileFit` with standard errors from the Gauss-Newton covariance.
     """
@@ -192,6 +201,14 @@ def fit_profile(
         s2 = float(rr @ rr) / max(rr.size - n_p, 1)
         # the weights are real standard errors: use chi^2/dof only when it exceeds 1
         cov = max(s2, 1.0) * np.linalg.pinv(J.T @ J)
+        if model == "tabulated" and not free_scale:
+            # the table's absolute level is uncertain as a whole (its Monte Carlo total):
+            # a level shift d moves every weighted residual by d w, and the solution by
+            # -pinv(J^T J) J^T w d; add that, fully correlated, to the covariance
+            v0 = np.exp(np.asarray(y, np.float64))
+            lvl = float(tabulated_level_error(v0[0], v0[1], eta))
+            dy = -np.linalg.pinv(J.T @ J) @ (J.T @ np.asarray(w, np.float64))
+            cov = cov + lvl**2 * np.outer(dy, dy)
         sd = np.sqrt(np.clip(np.diag(cov), 0, None))
         v = np.exp(np.asarray(y, dtype=np.float64))
         out["sa"].append(v[0])

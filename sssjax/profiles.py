@@ -82,6 +82,7 @@ __all__ = [
     "single_scatter",
     "single_scatter_total",
     "tabulated_error",
+    "tabulated_level_error",
 ]
 
 PROFILES = ("dipole", "better_dipole", "pbd", "tabulated")
@@ -330,6 +331,20 @@ def tabulated_error(
     out = _tabulated._interp(
         jnp.asarray(_tab_err_filled(), jnp.float32),
         [(lx, tab["log_x"]), (logit, tab["logit"]), (jnp.asarray(eta, jnp.float32), tab["eta"])],
+    )
+    return np.abs(np.asarray(out, np.float64))
+
+
+def tabulated_level_error(sigma_a: ArrayLike, sigmap_s: ArrayLike, eta: ArrayLike) -> np.ndarray:
+    """The tabulated profile's relative error of its absolute level (one standard error of
+    the Monte Carlo multiple-scattering total, lost photons included), interpolated. It is
+    common to every distance, so a fit must treat it as one correlated error."""
+    tab = _tabulated.table()
+    rel = np.asarray(tab["ms_total_err"], np.float64) / np.asarray(tab["ms_total"], np.float64)
+    _, _, logit = _tabulated.reduced(sigma_a, sigmap_s, jnp.float32)
+    out = _tabulated._interp(
+        jnp.asarray(rel, jnp.float32),
+        [(logit, tab["logit"]), (jnp.asarray(eta, jnp.float32), tab["eta"])],
     )
     return np.abs(np.asarray(out, np.float64))
 
