@@ -1,7 +1,7 @@
 """Build the table behind `profile = "tabulated"` from `sssjax.reference` (rerunnable).
 
     python benchmarks/profile_table.py                 # run what is missing, then assemble
-    python benchmarks/profile_table.py --passes 2 --budget 4e7   # the shipped table
+    python benchmarks/profile_table.py --passes 2 --budget 2e7 --bright 300000  # the shipped table
     python benchmarks/profile_table.py --assemble      # only rebuild the table from the runs
 
 The exitant profile of a semi-infinite medium under a normally incident pencil beam depends,
@@ -15,7 +15,13 @@ every node of the grid
 
 `sssjax.reference.simulate` traces `--photons` photons per pass (seed `SEED0 + 1000 pass +
 100 i_eta + i_a`, fixed), with `sigmap_t = 1`, into log bins of `x` from 0.01 to 316
-(16 per decade). Each run is saved under `--runs` (default `out/profile_table/runs`), so an
+(16 per decade). The bright nodes (`logit a' >= 4`, a' > 0.98), whose far tails pin a
+bright medium's `sigma_a` and cost up to ~1600 free flights per photon, get `--bright-passes`
+more, in two groups (`logit a'` 7-11.5 with `--bright` photons, 4-6.5 with four times as
+many): per group, eta and pass one walk at the group's brightest albedo, re-weighted to each
+of its nodes by `(a'/a'_max)^n` after `n` collisions (perturbation Monte Carlo,
+`reference.simulate(albedos=...)`; seed `SEED0 + 1000 pass + 100 i_eta + 99`, passes 10, 11
+and 12, 13): one walk serves a whole group. Each run is saved under `--runs` (default `out/profile_table/runs`), so an
 interrupted build resumes and more passes (independent seeds) can be added later; the
 assembly merges every pass it finds.
 
@@ -68,6 +74,10 @@ SEED0 = 7_000_000
 REL_OK = 0.2  # bins with a larger relative standard error are not used
 HALF = 3  # smoothing half-window, bins
 MAX_PHOTONS, MIN_PHOTONS = 4_000_000, 16_384  # per node and pass, for --budget passes
+# the bright passes: (lowest logit a', highest logit a' = the walk's, first pass number,
+# photons relative to --bright); each group's walk at its highest albedo is re-weighted to
+# all its nodes
+BRIGHT_GROUPS = ((7.0, 11.5, 10, 1), (4.0, 6.5, 12, 4))
 
 
 def albedo(logit):
@@ -76,6 +86,78 @@ def albedo(logit):
 
 def run_name(i_eta, i_a, p):
     return f"eta{i_eta}_a{i_a:02d}_p{p}.npz"
+
+
+def _save(ref, out: Path):
+    tmp = out.with_suffix(".tmp.npz")
+    np.savez(
+        tmp,
+        profile=ref.multiple_profile,
+        stderr=ref.multiple_profile_stderr,
+        counts=ref.counts,
+        total=ref.multiple,
+        total_stderr=ref.multiple_stderr,
+        lost=ref.lost,
+        n_photons=ref.n_photons,
+        steps=ref.steps_per_photon,
+    )
+    os.replace(tmp, out)
+
+
+def _group_nodes(lo: float, hi: float) -> np.ndarray:
+    return np.flatnonzero((LOGITS >= lo - 1e-9) & (LOGITS <= hi + 1e-9))
+
+
+def _bright_one(args):
+    """One perturbation walk at a group's brightest node, re-weighted to every node of the
+    group (one run file per node), in a worker process."""
+    i_eta, p, photons, runs, lo, hi = args
+    nodes = _group_nodes(lo, hi)
+    outs = [Path(runs) / run_name(i_eta, ia, p) for ia in nodes]
+    if all(o.exists() for o in outs):
+        return str(outs[-1]), 0.0
+    from sssjax import reference
+
+    a_max = float(albedo(LOGITS[nodes[-1]]))
+    t0 = time.perf_counter()
+    refs = reference.simulate(
+        1.0 - a_max,
+        a_max,
+        0.0,
+        float(ETAS[i_eta]),
+        n_photons=photons,
+        seed=SEED0 + 1000 * p + 100 * i_eta + 99,
+        r_edges=EDGES,
+        albedos=albedo(LOGITS[nodes]),
+    )
+    for ref, out in zip(refs, outs, strict=True):
+        _save(ref.entered(), out)
+    return str(outs[-1]), time.perf_counter() - t0
+
+
+def bright(photons: int, passes: int, jobs: int, runs: Path):
+    """The bright passes (`BRIGHT_GROUPS`): per group, eta and pass one walk of `photons`
+    (times the group's factor) at the group's brightest albedo, re-weighted to each of its
+    nodes (their far tails, on which a bright medium's sigma_a rests, need the most photons
+    and cost the most free flights per photon: about 1600 at a' = 0.99999)."""
+    runs.mkdir(parents=True, exist_ok=True)
+    todo = [
+        (ie, p0 + k, photons * mult, str(runs), lo, hi)
+        for lo, hi, p0, mult in BRIGHT_GROUPS
+        for k in range(passes)
+        for ie in range(ETAS.size)
+        if not (runs / run_name(ie, _group_nodes(lo, hi)[-1], p0 + k)).exists()
+    ]
+    print(f"profile table: {len(todo)} bright walks to do ({jobs} jobs)", flush=True)
+    t0 = time.perf_counter()
+    ctx = mp.get_context("spawn")
+    with cf.ProcessPoolExecutor(jobs, mp_context=ctx) as ex:
+        for k, (name, sec) in enumerate(ex.map(_bright_one, todo), 1):
+            el = time.perf_counter() - t0
+            print(
+                f"  [{k}/{len(todo)}] {Path(name).name} {sec:.0f} s (elapsed {el:.0f} s)",
+                flush=True,
+            )
 
 
 def _run_one(args):
@@ -97,19 +179,7 @@ def _run_one(args):
         seed=SEED0 + 1000 * p + 100 * i_eta + i_a,
         r_edges=EDGES,
     ).entered()
-    tmp = out.with_suffix(".tmp.npz")
-    np.savez(
-        tmp,
-        profile=ref.multiple_profile,
-        stderr=ref.multiple_profile_stderr,
-        counts=ref.counts,
-        total=ref.multiple,
-        total_stderr=ref.multiple_stderr,
-        lost=ref.lost,
-        n_photons=ref.n_photons,
-        steps=ref.steps_per_photon,
-    )
-    os.replace(tmp, out)
+    _save(ref, out)
     return str(out), time.perf_counter() - t0
 
 
@@ -311,6 +381,7 @@ def assemble(runs: Path, table: Path):
         photons=photons,
         built=np.array(datetime.date.today().isoformat()),
         seed0=np.array(SEED0),
+        smooth_half=np.array(HALF),
     )
     rel = T_err[np.isfinite(T_err)]
     print(
@@ -331,6 +402,13 @@ def main():
         type=float,
         help="passes after the first: free flights per node (photons = budget / steps)",
     )
+    ap.add_argument(
+        "--bright",
+        type=int,
+        metavar="PHOTONS",
+        help="add --bright-passes re-weighted walks of PHOTONS per eta for the bright nodes",
+    )
+    ap.add_argument("--bright-passes", type=int, default=2)
     ap.add_argument("--runs", type=Path, default=ROOT / "out" / "profile_table" / "runs")
     ap.add_argument("--table", type=Path, default=TABLE)
     ap.add_argument("--assemble", action="store_true", help="only assemble the existing runs")
@@ -338,6 +416,8 @@ def main():
     t0 = time.perf_counter()
     if not a.assemble:
         run(a.photons, a.passes, a.jobs, a.runs, a.budget)
+        if a.bright:
+            bright(a.bright, a.bright_passes, a.jobs, a.runs)
     assemble(a.runs, a.table)
     print(f"profile table: done in {time.perf_counter() - t0:.0f} s")
 

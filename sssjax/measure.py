@@ -29,6 +29,7 @@ from .profiles import (
     Rd,
     check_profile,
     single_scatter,
+    tabulated_covariance,
     tabulated_error,
     tabulated_level_error,
 )
@@ -151,14 +152,29 @@ def fit_profile(
     check_profile(model)
     check_orders(orders)
     sel = (profile.r >= r_min) & np.all(profile.mean > 0, axis=1)
-    r = jnp.asarray(profile.r[sel])
+    # rows padded to a multiple of 32 (weight 0): the compiled solver is shared by profiles
+    # of similar length instead of recompiled for each
+    n_real = int(sel.sum())
+    if n_real < 3 + free_scale:
+        raise ValueError(
+            f"fit_profile: {n_real} annuli beyond r_min = {r_min} mm with positive values in "
+            f"every channel; at least {3 + free_scale} are needed"
+        )
+    n_rows = 32 * max(1, -(-n_real // 32))
+    real = np.arange(n_rows) < n_real
+    r_np = np.asarray(profile.r[sel], np.float64)
+    r_np = np.concatenate([r_np, np.full(n_rows - n_real, r_np[0] if n_real else 1.0)])
+    r = jnp.asarray(r_np, jnp.asarray(profile.r).dtype)
     out = {k: [] for k in ("sa", "sp", "sc", "esa", "esp", "esc", "steps", "ok")}
     n_p = 3 if free_scale else 2
     resid_args = _residual(free_scale, model, orders)
     for c in range(3):
-        data = profile.mean[sel, c]
+        data = np.asarray(profile.mean[sel, c], np.float64)
         rel = np.sqrt((profile.stderr[sel, c] / data) ** 2 + rel_floor**2)
-        logd, w = jnp.asarray(np.log(data)), jnp.asarray(1.0 / rel)
+        data = np.concatenate([data, np.full(n_rows - n_real, data[0])])
+        rel = np.concatenate([rel, np.ones(n_rows - n_real)])
+        dt = jnp.asarray(profile.mean).dtype
+        logd, w = jnp.asarray(np.log(data), dt), jnp.asarray(real / rel, dt)
         args = (r, logd, w, jnp.asarray(eta, r.dtype))
         if init is None:
             starts = _grid_starts(r, logd, w, eta, free_scale, model=model, orders=orders)
@@ -185,7 +201,7 @@ def fit_profile(
             # the table's own error, at the coefficients found, then a polish from there
             v0 = np.exp(np.asarray(sol.value, np.float64))
             t_err = tabulated_error(np.asarray(r), v0[0], v0[1], eta)
-            w = jnp.asarray(1.0 / np.sqrt(rel**2 + t_err**2))
+            w = jnp.asarray(real / np.sqrt(rel**2 + t_err**2), dt)
             args = (r, logd, w, jnp.asarray(eta, r.dtype))
             sol = optx.least_squares(
                 resid_args,
@@ -198,9 +214,19 @@ def fit_profile(
             )
         y = sol.value
         J, rr = (np.asarray(x, dtype=np.float64) for x in _jac_and_resid(resid_args, y, args))
-        s2 = float(rr @ rr) / max(rr.size - n_p, 1)
+        s2 = float(rr @ rr) / max(n_real - n_p, 1)
         # the weights are real standard errors: use chi^2/dof only when it exceeds 1
         cov = max(s2, 1.0) * np.linalg.pinv(J.T @ J)
+        if model == "tabulated":
+            # the table's error is correlated between neighbouring annuli (its smoothing,
+            # its continued tail), so it does not average out like the data's: the sandwich
+            # pinv(J^T J) J^T W (C_data + C_table) W J pinv(J^T J) instead of independent
+            # errors (which understated bright media's sigma_a error 2-5x)
+            v0 = np.exp(np.asarray(y, np.float64))
+            wn = np.asarray(w, np.float64)
+            A = np.linalg.pinv(J.T @ J) @ J.T * wn[None, :]
+            C_t = tabulated_covariance(np.asarray(r), v0[0], v0[1], eta)
+            cov = max(s2, 1.0) * (A * rel[None, :] ** 2) @ A.T + A @ C_t @ A.T
         if model == "tabulated" and not free_scale:
             # the table's absolute level is uncertain as a whole (its Monte Carlo total):
             # a level shift d moves every weighted residual by d w, and the solution by

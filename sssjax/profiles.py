@@ -81,6 +81,7 @@ __all__ = [
     "PBD_DEPTHS",
     "single_scatter",
     "single_scatter_total",
+    "tabulated_covariance",
     "tabulated_error",
     "tabulated_level_error",
 ]
@@ -333,6 +334,53 @@ def tabulated_error(
         [(lx, tab["log_x"]), (logit, tab["logit"]), (jnp.asarray(eta, jnp.float32), tab["eta"])],
     )
     return np.abs(np.asarray(out, np.float64))
+
+
+@functools.cache
+def _smoother_correlation() -> np.ndarray:
+    """Correlation of the table's smoothed nodes `d = 0, 1, ...` bins apart: the overlap of
+    the builder's equivalent kernel (a local quadratic with a tricube window of
+    `smooth_half` bins, `benchmarks/profile_table.py`), for equal raw variances."""
+    half = int(_tabulated.table().get("smooth_half", 3))
+    u = np.arange(-half, half + 1.0)
+    k = (1 - (np.abs(u) / (half + 1)) ** 3) ** 3
+    A = np.stack([np.ones_like(u), u, u * u], 1)
+    ell = (np.linalg.inv(A.T @ (k[:, None] * A)) @ (A.T * k))[0]
+    rho = np.array([np.sum(ell[d:] * ell[: ell.size - d]) for d in range(ell.size)])
+    return np.append(rho / rho[0], 0.0)
+
+
+def tabulated_covariance(
+    r: ArrayLike, sigma_a: ArrayLike, sigmap_s: ArrayLike, eta: float
+) -> np.ndarray:
+    """The covariance `(n, n)` of the tabulated profile's relative (log) error at the `n`
+    distances `r` (mm) of one medium (scalar coefficients, mm^-1): `tabulated_error` on the
+    diagonal, correlated as the builder's smoothing correlates neighbouring nodes (about two
+    bins, 1/8 decade of `x`), and fully correlated beyond the last precise node (the
+    continued tail moves with it) and before the first. A fit whose annuli are denser than
+    the table's nodes must use this, not independent errors: its `sigma_a` error is
+    otherwise understated (`sssjax.measure.fit_profile`)."""
+    tab = _tabulated.table()
+    r = np.asarray(r, np.float64).ravel()
+    sig = tabulated_error(r, sigma_a, sigmap_s, eta).ravel()
+    spt = float(sigma_a) + float(sigmap_s)
+    lx_nodes = np.asarray(tab["log_x"], np.float64)
+    h = lx_nodes[1] - lx_nodes[0]
+    logit = np.clip(
+        np.log(max(float(sigmap_s), 1e-30)) - np.log(max(float(sigma_a), 1e-30)),
+        tab["logit"][0],
+        tab["logit"][-1],
+    )
+    ia = int(np.argmin(np.abs(tab["logit"] - logit)))
+    ie = int(np.argmin(np.abs(tab["eta"] - float(eta))))
+    good = np.flatnonzero(np.isfinite(tab["T_err"][:, ia, ie]))
+    u = (np.log(np.maximum(r * spt, 1e-300)) - lx_nodes[0]) / h
+    if good.size:
+        u = np.clip(u, good[0], good[-1])
+    rho_d = _smoother_correlation()
+    d = np.abs(u[:, None] - u[None, :])
+    rho = np.interp(d, np.arange(rho_d.size), rho_d, right=0.0)
+    return sig[:, None] * sig[None, :] * rho
 
 
 def tabulated_level_error(sigma_a: ArrayLike, sigmap_s: ArrayLike, eta: ArrayLike) -> np.ndarray:

@@ -279,8 +279,11 @@ def _advance(
     state, launched, key, it0, n_total, params, edges, *, n_iter, n_cols, n_batches, split, log_bins
 ):
     """`n_iter` free flights of the whole pool; returns the new state, the launch counter
-    and the tally `(n_batches * n_cols, 7)` of this call."""
-    sigma_t, albedo, g, inv_eta, d0x, d0z, r_cap2, max_steps, w_min, w_surv = params
+    and the tally `(n_batches * n_cols, K, 7)` of this call, one slice per albedo of
+    `log_ratios` (K,): the walk's weights times `(albedo_k / albedo)^n` after `n`
+    collisions (perturbation Monte Carlo; `log_ratios = [0]` is the walk itself)."""
+    sigma_t, albedo, g, inv_eta, d0x, d0z, r_cap2, max_steps, w_min, w_surv, log_ratios = params
+    n_k = log_ratios.shape[0]
     n_bins = edges.shape[0] - 1
     pool = state[0].shape[0]
     dtype = state[0].dtype
@@ -340,9 +343,11 @@ def _advance(
         dz = jnp.where(hit, -dz, dz)
 
         # at a collision: implicit capture, then a Henyey-Greenstein direction
-        w_abs = jnp.where(coll, w * (1.0 - albedo), 0.0)
+        f_old = jnp.exp(nscat.astype(dtype)[:, None] * log_ratios)  # (pool, K)
+        w_abs = jnp.where(coll, w, 0.0)[:, None] * f_old * (1.0 - albedo * jnp.exp(log_ratios))
         w = jnp.where(coll, w * albedo, w)
         nscat = nscat + coll.astype(jnp.int32)
+        f_new = jnp.exp(nscat.astype(dtype)[:, None] * log_ratios)
         ndx, ndy, ndz = _rotate(dx, dy, dz, _hg_cos(u[1], g), 2.0 * jnp.pi * u[2])
         dx, dy, dz = jnp.where(coll, ndx, dx), jnp.where(coll, ndy, dy), jnp.where(coll, ndz, dz)
 
@@ -357,23 +362,26 @@ def _advance(
         was_active = active
         active = active & ~gone & ~far & ~(low & ~survive)
 
+        def each(v):
+            return jnp.broadcast_to(v.astype(dtype)[:, None], (pool, n_k))
+
         upd = jnp.stack(
             [
-                w_exit,
-                hit.astype(dtype),
+                w_exit[:, None] * f_old,
+                each(hit),
                 w_abs,
-                w_lost,
-                w_rr,
-                new.astype(dtype),
-                was_active.astype(dtype),
+                w_lost[:, None] * f_new,
+                w_rr[:, None] * f_new,
+                each(new),
+                each(was_active),
             ],
-            axis=1,
+            axis=2,
         )
         tab = tab.at[batch * n_cols + col].add(upd, mode="promise_in_bounds")
         st = (x, y, z, dx, dy, dz, w, nscat, steps, batch, active)
         return st, launched, tab
 
-    tab = jnp.zeros((n_batches * n_cols, _NQ), dtype)
+    tab = jnp.zeros((n_batches * n_cols, n_k, _NQ), dtype)
     return jax.lax.fori_loop(0, n_iter, body, (state, launched, tab))
 
 
@@ -414,8 +422,9 @@ def simulate(
     w_min: float | None = None,
     w_survive: float | None = None,
     split: bool = True,
+    albedos: ArrayLike | None = None,
     progress: Callable[[int, int], None] | bool = False,
-) -> Reference:
+) -> Reference | tuple[Reference, ...]:
     """Trace `n_photons` photons of a pencil beam into a semi-infinite medium.
 
     **Arguments:**
@@ -440,10 +449,16 @@ def simulate(
       threshold would leave to a few lucky survivors).
     - `split`: split the weight at the surface with the Fresnel reflectance (default); with
       `False` a photon leaves whole with probability `1 - F` (analog), which is also unbiased.
+    - `albedos`: re-weight the same walk to these single-scattering albedos (each in
+      `(0, sigma_s / sigma_t]`, at the same `sigma_t`): a photon's weight after `n`
+      collisions is multiplied by `(albedo_k / albedo)^n` (perturbation Monte Carlo), which
+      is unbiased for each, with the variance of its own walk or less. One walk of the
+      brightest medium thus serves a whole range of bright ones (`benchmarks/profile_table.py`).
     - `progress`: `True` to print progress, or a callable `(done, n_photons)`.
 
     **Returns:** a `Reference` (per unit incident power; `.entered()` for per unit entered
-    power).
+    power), or with `albedos` a tuple of them, one per albedo (their `sigma_a`, `sigma_s`
+    are `sigma_t (1 - albedo_k)`, `sigma_t albedo_k`).
     """
     for name, v in (("sigma_a", sigma_a), ("sigma_s", sigma_s)):
         _check(name, v, np.isfinite(v) and v >= 0, "finite and >= 0 (mm^-1)")
@@ -455,6 +470,20 @@ def simulate(
     _check("n_photons", n_photons, int(n_photons) >= n_batches, f">= n_batches ({n_batches})")
     _check("max_steps", max_steps, int(max_steps) >= 1, ">= 1")
     sigma_t = float(sigma_a) + float(sigma_s)
+    walk_albedo = float(sigma_s) / sigma_t
+    if albedos is not None:
+        alb = np.atleast_1d(np.asarray(albedos, np.float64))
+        _check(
+            "albedos",
+            alb.tolist()[:4],
+            alb.ndim == 1
+            and alb.size >= 1
+            and bool(np.all((alb > 0) & (alb <= walk_albedo * (1 + 1e-12)))),
+            f"a 1-D list in (0, sigma_s / sigma_t = {walk_albedo:.6g}]",
+        )
+        log_ratios = np.minimum(np.log(alb / walk_albedo), 0.0)
+    else:
+        log_ratios = np.zeros(1)
     if w_min is None:
         w_min = max(0.25 * (float(sigma_s) / sigma_t) ** 2, 1e-6)
     if w_survive is None:
@@ -496,6 +525,7 @@ def simulate(
         jnp.asarray(int(max_steps), jnp.int32),
         jnp.asarray(w_min, dtype),
         jnp.asarray(w_survive, dtype),
+        jnp.asarray(log_ratios, dtype),
     )
     edges_j = jnp.asarray(edges, dtype)
     ratios = edges[2:] / edges[1:-1]
@@ -505,7 +535,8 @@ def simulate(
     t0 = time.perf_counter()
     state = _empty_state(pool, n_batches, dtype)
     launched = jnp.asarray(0, jnp.int32)
-    total = np.zeros((n_batches * n_cols, _NQ), np.float64)
+    n_k = log_ratios.size
+    total = np.zeros((n_batches * n_cols, n_k, _NQ), np.float64)
     it = 0
     report = progress if callable(progress) else None
     last_print = t0
@@ -541,13 +572,20 @@ def simulate(
         if n_launched >= n_photons and size > 256 and n_active <= size // 8:
             state = _compact(state, max(size // 8, 1))
     seconds = time.perf_counter() - t0
-    return _finish(
-        total.reshape(n_batches, n_cols, _NQ),
-        edges,
-        n_photons,
-        specular,
-        seconds,
-        dict(sigma_a=sigma_a, sigma_s=sigma_s, g=g, eta=eta, theta_i=theta_i),
+    total = total.reshape(n_batches, n_cols, n_k, _NQ)
+    if albedos is None:
+        inputs = dict(sigma_a=sigma_a, sigma_s=sigma_s, g=g, eta=eta, theta_i=theta_i)
+        return _finish(total[:, :, 0], edges, n_photons, specular, seconds, inputs)
+    return tuple(
+        _finish(
+            total[:, :, k],
+            edges,
+            n_photons,
+            specular,
+            seconds,
+            dict(sigma_a=sigma_t * (1 - a), sigma_s=sigma_t * a, g=g, eta=eta, theta_i=theta_i),
+        )
+        for k, a in enumerate(alb)
     )
 
 

@@ -225,3 +225,27 @@ def test_to_profile_and_bad_input():
         args = dict(sigma_a=0.1, sigma_s=1.0, g=0.0, eta=1.3) | kw
         with pytest.raises(ValueError, match=field):
             simulate(**args, **FAST)
+
+
+def test_reweighted_albedos_match_direct_walks_and_close_their_books():
+    """`simulate(albedos=...)`: one walk at albedo 0.99 re-weighted by `(a/0.99)^n` to 0.95
+    and 0.8 against direct walks at those albedos (independent seeds), and against the
+    index-matched closed form (Chandrasekhar's H) at eta = 1; each albedo's bookkeeping
+    closes on its own."""
+    n = 60_000
+    rew = simulate(0.01, 0.99, 0.0, 1.0, n_photons=n, seed=41, albedos=[0.99, 0.95, 0.8], **FAST)
+    assert [round(r.sigma_s, 12) for r in rew] == [0.99, 0.95, 0.8]
+    for r, a in zip(rew[1:], (0.95, 0.8), strict=True):
+        books = r.specular + r.diffuse + r.absorbed + r.lost + r.roulette
+        assert abs(books - 1) < 1e-5, books
+        d = simulate(1 - a, a, 0.0, 1.0, n_photons=n, seed=42, **FAST)
+        z = (r.diffuse - d.diffuse) / math.hypot(r.diffuse_stderr, d.diffuse_stderr)
+        assert abs(z) < 4, (a, r.diffuse, d.diffuse)
+        # the closed form: total reflectance 1 - H(1) sqrt(1 - a) under a normal beam
+        exact = 1 - chandrasekhar_H(a, 1.0) * math.sqrt(1 - a)
+        assert abs(r.diffuse - exact) < 4 * r.diffuse_stderr + 1e-4, (a, r.diffuse, exact)
+        ok = (d.counts > 100) & (r.counts > 100)
+        zb = (r.profile - d.profile)[ok] / np.hypot(r.profile_stderr, d.profile_stderr)[ok]
+        assert np.mean(zb**2) < 2.0, np.mean(zb**2)
+    with pytest.raises(ValueError, match="albedos"):
+        simulate(0.5, 0.5, n_photons=256, albedos=[0.7], **FAST)
