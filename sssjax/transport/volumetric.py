@@ -53,6 +53,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from .._numerics import safe_div, safe_sqrt
@@ -245,20 +246,69 @@ class WalkStats(eqx.Module):
     cut: Array
 
 
-def _log_factors(terms: VolumetricTerms, media) -> Float[Array, "3 P R"]:
-    """`log f = sum_m n log(sigma_s / sigma_s0) - (sigma_t - sigma_t0) L` per channel, finite
-    at `sigma_s = 0` (then `f = 0` for `n > 0`) with finite gradients."""
+def _coefficient_shifts(terms: VolumetricTerms, media):
+    """`(log(sigma_s / sigma_s0), sigma_t - sigma_t0)`, each `(Mt, 3)`; the log is finite at
+    `sigma_s = 0` (-1e4: then `f = 0` for `n > 0`) with finite gradients."""
     ss = jnp.stack([jnp.broadcast_to(m.sigma_s, (3,)) for m in media])  # (Mt, 3)
     st = jnp.stack([jnp.broadcast_to(m.sigma_t, (3,)) for m in media])
     ratio = ss / terms.sigma_s0
     pos = ratio > 0
-    log_r = jnp.where(pos, jnp.log(jnp.where(pos, ratio, 1.0)), -1e4)  # (Mt, 3)
-    d_t = st - terms.sigma_t0
-    n, L = terms.n[None], terms.L[None]  # (1, P, R, Mt)
+    log_r = jnp.where(pos, jnp.log(jnp.where(pos, ratio, 1.0)), -1e4)
+    return log_r, st - terms.sigma_t0
+
+
+def _log_f(n, L, log_r, d_t):
+    """`log f = sum_m n log_r - d_t L`, `(3, P, R)` from `n`, `L` `(P, R, Mt)`."""
     lr = jnp.moveaxis(log_r, 1, 0)[:, None, None, :]  # (3, 1, 1, Mt)
     dt = jnp.moveaxis(d_t, 1, 0)[:, None, None, :]
-    nl = jnp.where(n > 0, n * lr, 0.0)
-    return jnp.sum(nl - dt * L, axis=-1)
+    nl = jnp.where(n[None] > 0, n[None] * lr, 0.0)
+    return jnp.sum(nl - dt * L[None], axis=-1)
+
+
+def _log_factors(terms: VolumetricTerms, media) -> Float[Array, "3 P R"]:
+    """`log f = sum_m n log(sigma_s / sigma_s0) - (sigma_t - sigma_t0) L` per channel."""
+    return _log_f(terms.n, terms.L, *_coefficient_shifts(terms, media))
+
+
+@jax.custom_jvp
+def _reweighted_sum(w, n, L, log_r, d_t):
+    """`sum_R w f`, `(3, P)`: the re-weighted records."""
+    return jnp.sum(w * jnp.exp(_log_f(n, L, log_r, d_t)), axis=-1)
+
+
+def _jvp_reweighted_sum(primals, tangents):
+    """The closed-form tangent: `d log f = sum_m n_m d log_r - L_m d d_t`, so a tangent of
+    the coefficients needs only `S_n = sum_R w f n_m` and `S_L = sum_R w f L_m`, computed once
+    from the primals; a forward Jacobian (one tangent per coefficient) then costs about
+    three shades instead of one per coefficient and channel. Tangents of the records
+    themselves (never needed by a fit) take the general path."""
+    w, n, L, log_r, d_t = primals
+    dw, dn, dL, dlr, ddt = tangents
+    f = jnp.exp(_log_f(n, L, log_r, d_t))
+    wf = w * f
+    out = jnp.sum(wf, axis=-1)
+    n_pos = jnp.where(n > 0, n, 0.0)
+    S_n = jnp.einsum("cpr,prm->cpm", wf, n_pos)
+    S_L = jnp.einsum("cpr,prm->cpm", wf, L)
+    t = jnp.einsum("cpm,mc->cp", S_n, _dense(dlr, log_r)) - jnp.einsum(
+        "cpm,mc->cp", S_L, _dense(ddt, d_t)
+    )
+    if not isinstance(dw, SymbolicZero):
+        t = t + jnp.sum(dw * f, axis=-1)
+    if not (isinstance(dn, SymbolicZero) and isinstance(dL, SymbolicZero)):
+        lr = jnp.moveaxis(log_r, 1, 0)[:, None, None, :]
+        dt = jnp.moveaxis(d_t, 1, 0)[:, None, None, :]
+        dn_, dL_ = _dense(dn, n), _dense(dL, L)
+        dlog = jnp.sum(jnp.where(n[None] > 0, dn_[None] * lr, 0.0) - dt * dL_[None], axis=-1)
+        t = t + jnp.sum(wf * dlog, axis=-1)
+    return out, t
+
+
+def _dense(t, like):
+    return jnp.zeros_like(like) if isinstance(t, SymbolicZero) else t
+
+
+_reweighted_sum.defjvp(_jvp_reweighted_sum, symbolic_zeros=True)
 
 
 def shade_terms(terms, media, *, multiple: bool = True, single: bool = True) -> Array:
@@ -268,13 +318,12 @@ def shade_terms(terms, media, *, multiple: bool = True, single: bool = True) -> 
     scattering event, light only attenuated, count with neither switched off)."""
     if terms.n.shape[-1] == 0:
         return jnp.zeros(terms.w.shape[1:2] + (3,), terms.w.dtype)
-    f = jnp.exp(_log_factors(terms, media))  # (3, P, R)
     w = terms.w
     if not (single and multiple):
         order = jnp.sum(terms.n, axis=-1)[None]
         keep = (order == 0) | ((order == 1) & single) | ((order >= 2) & multiple)
         w = jnp.where(keep, w, 0.0)
-    return jnp.sum(w * f, axis=-1).T
+    return _reweighted_sum(w, terms.n, terms.L, *_coefficient_shifts(terms, media)).T
 
 
 def effective_sample_size(terms: VolumetricTerms, media) -> tuple[Array, Array]:
