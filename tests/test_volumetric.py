@@ -551,7 +551,6 @@ def test_reweighting_gradients_match_central_differences(x64):
     assert np.all(np.isfinite(np.asarray(jax.grad(f)(z))))
 
 
-
 def test_closed_form_jvp_matches_the_plain_formula_forward_and_reverse(x64):
     """The custom JVP of the re-weighted sum (built from `sum w f n` and `sum w f L`)
     against automatic differentiation of the plain formula `sum_R w exp(log f)`: forward
@@ -585,6 +584,7 @@ def test_closed_form_jvp_matches_the_plain_formula_forward_and_reverse(x64):
         jc = jax.jacfwd(lambda x: custom(p0, **{arg: x}))(x)
         jp = jax.jacfwd(lambda x: plain(p0, **{arg: x}))(x)
         np.testing.assert_allclose(jc, jp, rtol=1e-10, atol=1e-12)
+
 
 # --- the ray tree -------------------------------------------------------------------------
 @pytest.mark.slow
