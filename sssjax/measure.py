@@ -47,7 +47,8 @@ __all__ = [
 
 @dataclasses.dataclass
 class Profile:
-    """A radial profile: `r` (mm, bin centres), `mean` and `stderr` `(n, 3)`, `counts`."""
+    """A radial profile: `r` (mm, bin centres), `mean` and `stderr` `(n, channels)` (3 for
+    RGB; any number is fitted channel by channel), `counts`."""
 
     r: np.ndarray
     mean: np.ndarray
@@ -168,7 +169,7 @@ def fit_profile(
     out = {k: [] for k in ("sa", "sp", "sc", "esa", "esp", "esc", "steps", "ok")}
     n_p = 3 if free_scale else 2
     resid_args = _residual(free_scale, model, orders)
-    for c in range(3):
+    for c in range(np.shape(profile.mean)[1]):
         data = np.asarray(profile.mean[sel, c], np.float64)
         rel = np.sqrt((profile.stderr[sel, c] / data) ** 2 + rel_floor**2)
         data = np.concatenate([data, np.full(n_rows - n_real, data[0])])

@@ -218,8 +218,8 @@ def test_tabulated_fit_recovers_preset_channels_with_honest_error_bars():
                 ok = (r <= r_max) & (mean > 0) & (se < 0.25 * np.where(mean > 0, mean, 1))
                 prof = Profile(
                     r=r[ok],
-                    mean=np.repeat(mean[ok, None], 3, 1),
-                    stderr=np.repeat(se[ok, None], 3, 1),
+                    mean=mean[ok, None],  # one channel: fit_profile fits each alone
+                    stderr=se[ok, None],
                     counts=np.ones(ok.sum(), np.int64),
                 )
                 f = fit_profile(prof, 1.3, model="tabulated", orders="all")
