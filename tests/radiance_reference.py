@@ -33,7 +33,13 @@ def _hg_cos(u, g):
     return jnp.clip((1.0 + g * g - f * f) / (2.0 * g), -1.0, 1.0)
 
 
-@functools.partial(jax.jit, static_argnames=("pool", "n_bins", "g", "max_steps"))
+# a long-running walk: full LLVM optimisation whatever the suite's XLA_FLAGS (its O0 ran
+# this 3.5x slower; see tests/conftest.py)
+@functools.partial(
+    jax.jit,
+    static_argnames=("pool", "n_bins", "g", "max_steps"),
+    compiler_options={"xla_backend_optimization_level": 3},
+)
 def _run(key, sigma_t, albedo, inv_eta, t_exit, edges, *, pool, n_bins, g, max_steps):
     z0 = jnp.zeros(pool)
     st = (z0, z0, z0, z0, z0, -jnp.ones(pool), jnp.ones(pool), jnp.zeros(pool, jnp.int32))

@@ -7,8 +7,8 @@ its first translucent hit `x_o` the per-sample state ("slot") the subsurface ter
 from: where it is, the refracted view direction, the exit cosine, the object, the path
 throughput and the Fresnel-transmitted irradiance `E(x_o)` (the dipole's near field).
 
-Bounces past the camera's run only on the rays still alive (packed into a quarter of the
-block when they fit, skipped when none is left): after the first hit most rays have ended.
+Bounces past the camera's run only on the rays still alive (packed, in quarter-block
+chunks, none when no ray is left): after the first hit most rays have ended.
 Lengths in mm.
 """
 
@@ -30,8 +30,8 @@ __all__ = ["SLOT_FIELDS", "chain_block"]
 
 # per-sample state at the first translucent vertex of each path, output of the chains
 SLOT_FIELDS = ("have", "xo", "din", "cos_o", "tobj", "T_slot", "E_o")
-# bounces past the first run on the alive rays packed into M / k slots (the narrowest that fits)
-_BOUNCE_WIDTHS = (4, 1)
+# bounces past the first run on the alive rays, packed, in chunks of 1/_BOUNCE_CHUNKS of the block
+_BOUNCE_CHUNKS = 4
 
 
 def chain_block(
@@ -98,31 +98,26 @@ def _bounce_alive(arrays: SceneArrays, bounce, depth, st, k_chain):
     """One bounce past the camera's, run only on the rays still alive.
 
     After the first hit most rays have ended (on a diffuse surface, an emitter or the
-    background), so the alive ones are packed into the narrowest of `_BOUNCE_WIDTHS`
-    that holds them (a block with none skips the bounce) and scattered back: the cost
-    follows the rays that bounce, not the block. The packing keeps each ray's own random
-    numbers, so the image is that of the unpacked bounce.
+    background), so the alive ones are packed to the front and bounced in chunks of
+    `1/_BOUNCE_CHUNKS` of the block, only as many chunks as hold them (none when no ray is
+    left), then scattered back: the cost follows the rays that bounce, not the block, and
+    one chunk width compiles one copy of the bounce. The packing keeps each ray's own
+    random numbers, so the image is that of the unpacked bounce.
     """
     M = st["alive"].shape[0]
     ul = _light_u(arrays, k_chain, depth, M)
-    widths = sorted({max(-(-M // k), 1) for k in _BOUNCE_WIDTHS})
-
-    def packed(width):
-        def run(st):
-            if width == M:
-                return bounce(depth, st, ul)
-            idx = jnp.nonzero(st["alive"], size=width, fill_value=M)[0]
-            sub = {f: jnp.take(v, idx, axis=0, mode="fill", fill_value=0) for f, v in st.items()}
-            sub = bounce(depth, sub, jnp.take(ul, idx, axis=0, mode="fill", fill_value=0))
-            return {f: v.at[idx].set(sub[f], mode="drop") for f, v in st.items()}
-
-        return run
-
+    C = max(-(-M // _BOUNCE_CHUNKS), 1)
     n_alive = jnp.sum(st["alive"])
-    branch = jnp.where(
-        n_alive == 0, 0, 1 + jnp.searchsorted(jnp.asarray(widths), n_alive, side="left")
-    )
-    return jax.lax.switch(branch, [lambda s: s] + [packed(w) for w in widths], st)
+    order = jnp.nonzero(st["alive"], size=-(-M // C) * C, fill_value=M)[0]
+
+    def chunk(c):
+        k, st = c
+        idx = jax.lax.dynamic_slice(order, (k * C,), (C,))
+        sub = {f: jnp.take(v, idx, axis=0, mode="fill", fill_value=0) for f, v in st.items()}
+        sub = bounce(depth, sub, jnp.take(ul, idx, axis=0, mode="fill", fill_value=0))
+        return k + 1, {f: v.at[idx].set(sub[f], mode="drop") for f, v in st.items()}
+
+    return jax.lax.while_loop(lambda c: c[0] * C < n_alive, chunk, (jnp.int32(0), st))[1]
 
 
 def _bounce(arrays: SceneArrays, lights, depth, st, ul, subsurface: bool, rec: Recorder):

@@ -91,7 +91,8 @@ RR_MIN_EVENTS = 4
 MAX_EVENTS = 1 << 17  # safety cap; walks cut here are counted in `WalkStats.truncated`
 _NU = 16  # uniform numbers per walker and event
 _LEDGER = ("escaped", "emitter", "absorbed", "roulette", "cut")
-_WIDTHS = (1, 8, 64)  # walkers are packed into 1/k of the block as they end
+_CHUNKS = 64  # alive walkers are stepped in chunks of 1/_CHUNKS of the block ...
+_CHUNK_MIN = 256  # ... but no fewer than this many
 _PHASE = 8  # events between re-packings
 _BLOCK_WALKERS = 1 << 15  # walkers traced together by the renderer
 # what ended each free flight (`_step(record=True)`, the ray tree)
@@ -1044,49 +1045,54 @@ def _walk(vs: VolScene, prop: Proposal, st: dict, nee: bool = True, mis: bool = 
     """Run every walker of `st` to its end.
 
     Most walkers end within a few events (on the background, a light, or by roulette) while
-    a few wander inside a medium for thousands: the alive ones are packed into the narrowest
-    of `_WIDTHS` that holds them and stepped `_PHASE` events at a time, so the cost follows
-    the walkers that are still going, not the block. Each walker draws its own random
-    numbers, so the result does not depend on the packing.
+    a few wander inside a medium for thousands: every `_PHASE` events the alive ones are
+    packed to the front and stepped in chunks of `_chunk(W)` walkers, only as many chunks as
+    hold them, so the cost follows the walkers that are still going, not the block. One
+    chunk width means one compiled copy of `_step` (a `switch` over packed widths compiled
+    one copy per width: 3x the compile time). Each walker draws its own random numbers, so
+    the result does not depend on the packing.
     """
     W = st["alive"].shape[0]
     K = st["res_n"].shape[1]
-    widths = sorted({max(-(-W // k), 1) for k in _WIDTHS})
+    C = _chunk(W)
     be = _beam_entry(vs) if vs.lights.n_beam else None
 
-    def phase(width):
-        def run(carry):
-            i, st = carry
-            if width == W:
-                sub = st
-            else:
-                idx = jnp.nonzero(st["alive"], size=width, fill_value=W)[0]
-                sub = {
-                    f: jnp.take(v, idx, axis=0, mode="fill", fill_value=0) for f, v in st.items()
-                }
+    def steps(i, sub):
+        def body(j, sub):
+            u = _uniforms(sub["seed"], i + j, _NU + 2 * K).astype(sub["o"].dtype)
+            return _step(vs, prop, sub, u[:, :_NU], u[:, _NU:], nee, be, mis)
 
-            def body(j, sub):
-                u = _uniforms(sub["seed"], i + j, _NU + 2 * K).astype(sub["o"].dtype)
-                return _step(vs, prop, sub, u[:, :_NU], u[:, _NU:], nee, be, mis)
-
-            sub = jax.lax.fori_loop(0, _PHASE, body, sub)
-            if width == W:
-                return i + _PHASE, sub
-            return i + _PHASE, {f: v.at[idx].set(sub[f], mode="drop") for f, v in st.items()}
-
-        return run
+        return jax.lax.fori_loop(0, _PHASE, body, sub)
 
     def cond(carry):
         i, st = carry
         return jnp.any(st["alive"]) & (i < MAX_EVENTS)
 
     def body(carry):
-        n_alive = jnp.sum(carry[1]["alive"])
-        branch = jnp.searchsorted(jnp.asarray(widths), n_alive, side="left")
-        return jax.lax.switch(branch, [phase(w) for w in widths], carry)
+        i, st = carry
+        if C == W:
+            return i + _PHASE, steps(i, st)
+        n_alive = jnp.sum(st["alive"])
+        order = jnp.nonzero(st["alive"], size=-(-W // C) * C, fill_value=W)[0]
+
+        def chunk(c):
+            k, st = c
+            idx = jax.lax.dynamic_slice(order, (k * C,), (C,))
+            sub = {f: jnp.take(v, idx, axis=0, mode="fill", fill_value=0) for f, v in st.items()}
+            sub = steps(i, sub)
+            return k + 1, {f: v.at[idx].set(sub[f], mode="drop") for f, v in st.items()}
+
+        _, st = jax.lax.while_loop(lambda c: c[0] * C < n_alive, chunk, (jnp.int32(0), st))
+        return i + _PHASE, st
 
     _, st = jax.lax.while_loop(cond, body, (jnp.int32(0), st))
     return st
+
+
+def _chunk(W: int) -> int:
+    """Walkers stepped together: 1/`_CHUNKS` of the block, but at least `_CHUNK_MIN` (narrower
+    steps cost about as much: per-operation overhead) and at most the block."""
+    return min(W, max(-(-W // _CHUNKS), _CHUNK_MIN))
 
 
 def trace_block(
