@@ -24,6 +24,7 @@ from ..camera import camera_rays
 from ..lights import beam_irradiance, direct_irradiance
 from ..sampling import stratified_2d
 from ..scattering import fresnel_reflectance, fresnel_transmittance, refract
+from ._packing import step_alive
 from ._record import NO_RECORD, Recorder
 
 __all__ = ["SLOT_FIELDS", "chain_block"]
@@ -107,17 +108,11 @@ def _bounce_alive(arrays: SceneArrays, bounce, depth, st, k_chain):
     M = st["alive"].shape[0]
     ul = _light_u(arrays, k_chain, depth, M)
     C = max(-(-M // _BOUNCE_CHUNKS), 1)
-    n_alive = jnp.sum(st["alive"])
-    order = jnp.nonzero(st["alive"], size=-(-M // C) * C, fill_value=M)[0]
 
-    def chunk(c):
-        k, st = c
-        idx = jax.lax.dynamic_slice(order, (k * C,), (C,))
-        sub = {f: jnp.take(v, idx, axis=0, mode="fill", fill_value=0) for f, v in st.items()}
-        sub = bounce(depth, sub, jnp.take(ul, idx, axis=0, mode="fill", fill_value=0))
-        return k + 1, {f: v.at[idx].set(sub[f], mode="drop") for f, v in st.items()}
+    def step(sub, idx):
+        return bounce(depth, sub, jnp.take(ul, idx, axis=0, mode="fill", fill_value=0))
 
-    return jax.lax.while_loop(lambda c: c[0] * C < n_alive, chunk, (jnp.int32(0), st))[1]
+    return step_alive(st, C, step)
 
 
 def _bounce(arrays: SceneArrays, lights, depth, st, ul, subsurface: bool, rec: Recorder):

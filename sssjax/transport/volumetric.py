@@ -70,6 +70,7 @@ from ._connect import (
     sphere_connections,
     sphere_exit,
 )
+from ._packing import step_alive
 from ._record import NO_RECORD, Recorder
 from ._volscene import DIFFUSE, MIRROR, TRANSLUCENT, VolScene
 
@@ -1046,11 +1047,9 @@ def _walk(vs: VolScene, prop: Proposal, st: dict, nee: bool = True, mis: bool = 
 
     Most walkers end within a few events (on the background, a light, or by roulette) while
     a few wander inside a medium for thousands: every `_PHASE` events the alive ones are
-    packed to the front and stepped in chunks of `_chunk(W)` walkers, only as many chunks as
-    hold them, so the cost follows the walkers that are still going, not the block. One
-    chunk width means one compiled copy of `_step` (a `switch` over packed widths compiled
-    one copy per width: 3x the compile time). Each walker draws its own random numbers, so
-    the result does not depend on the packing.
+    stepped, packed, in chunks of `_chunk(W)` walkers (`_packing.step_alive`; one chunk width
+    compiles `_step` once, where a `switch` over three packed widths compiled it three
+    times), so the cost follows the walkers that are still going, not the block.
     """
     W = st["alive"].shape[0]
     K = st["res_n"].shape[1]
@@ -1072,18 +1071,7 @@ def _walk(vs: VolScene, prop: Proposal, st: dict, nee: bool = True, mis: bool = 
         i, st = carry
         if C == W:
             return i + _PHASE, steps(i, st)
-        n_alive = jnp.sum(st["alive"])
-        order = jnp.nonzero(st["alive"], size=-(-W // C) * C, fill_value=W)[0]
-
-        def chunk(c):
-            k, st = c
-            idx = jax.lax.dynamic_slice(order, (k * C,), (C,))
-            sub = {f: jnp.take(v, idx, axis=0, mode="fill", fill_value=0) for f, v in st.items()}
-            sub = steps(i, sub)
-            return k + 1, {f: v.at[idx].set(sub[f], mode="drop") for f, v in st.items()}
-
-        _, st = jax.lax.while_loop(lambda c: c[0] * C < n_alive, chunk, (jnp.int32(0), st))
-        return i + _PHASE, st
+        return i + _PHASE, step_alive(st, C, lambda sub, _: steps(i, sub))
 
     _, st = jax.lax.while_loop(cond, body, (jnp.int32(0), st))
     return st
