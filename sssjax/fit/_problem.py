@@ -473,14 +473,20 @@ class FitProblem:
         self.trace_time += time.perf_counter() - t
         return data, media
 
-    def args(self, data, media, dt, weights_at=None) -> Args:
+    def args(self, data, media, dt, weights_at=None, weights_from=None) -> Args:
         """The residual functions' data for `data` and `media`, weighted as the options say:
-        relative weights from the target's values, or from the model's at `weights_at`."""
+        relative weights from the target's values, or from the model's at `weights_at` (of
+        the traces `weights_from` when given: independent of `data`'s noise, which weights
+        from `data`'s own model would favour, as the target's own values favour its)."""
         args = residual_args(data, media, self.options.loss_scale, dt)
         weighting = WEIGHTINGS[self.options.weighting]
         if weighting.weights is None:
             return args
-        if weights_at is None:
+        if weights_from is not None:
+            other = residual_args(weights_from, media, self.options.loss_scale, dt)
+            level = np.asarray(model(self.layout, weights_at, other))
+            level = level * float(other.scale) / float(args.scale)
+        elif weights_at is None:
             level = np.asarray(args.target)  # the target, in units of its mean
         else:
             level = np.asarray(model(self.layout, weights_at, args))

@@ -58,14 +58,26 @@ def _floored_inverse(H):
     return (V / lam) @ V.T
 
 
+# the floor on the cross curvature's share of the one-trace curvature (`_decorrelated_step`)
+MIN_CURVATURE_SHARE = 0.3
+
+
 @eqx.filter_jit
 def _decorrelated_step(residuals, y, args):
     """The Gauss-Newton step of `0.5 sum r_A r_B` at `y`, from the residuals of two
     independent halves of the samples (`residual_fn(decorrelated=True)`): gradient
-    `(J_A^T r_B + J_B^T r_A) / 2` and Hessian `(J_A^T J_B + J_B^T J_A) / 2`, unbiased for
-    the noise-free `J^T J` (one estimate's `J^T J` adds the Jacobian's own variance, which
-    shortens every step). **Returns:** the step, the coordinates' standard errors (from
-    `J^T J` as usual) and the plain loss of the whole."""
+    `(J_A^T r_B + J_B^T r_A) / 2`, unbiased for the noise-free one.
+
+    The curvature: the cross product `H_x = (J_A^T J_B + J_B^T J_A) / 2` is unbiased for the
+    noise-free `J^T J` but noisy, while the whole trace's `H = Jbar^T Jbar` adds the
+    Jacobian's own variance (too much curvature: short steps). In the directions of their
+    generalized eigenvectors, `H_x = mu H`, `mu` the share of `H` that is signal; measured on
+    a thick slab under the beam (32^2 px, 64-256 spp), three of six directions had `mu`
+    0-0.15 (the `sigma_a` tails' long paths: heavy-tailed derivatives) and the plain cross
+    step swung by up to 30 in log. So `mu` is floored at `MIN_CURVATURE_SHARE`: full steps
+    where the trace resolves the curvature, at most `1 / MIN_CURVATURE_SHARE` times the
+    one-trace step where it does not. **Returns:** the step, the coordinates' standard
+    errors (from `H`, divided by `sqrt(mu)`, floored) and the plain loss of the whole."""
 
     def res(yy):
         r = residuals(yy, args)
@@ -73,13 +85,23 @@ def _decorrelated_step(residuals, y, args):
 
     J, r = jax.jacfwd(res, has_aux=True)(y)  # (2, m, n), (2, m)
     Ja, Jb, ra, rb = J[0], J[1], r[0], r[1]
-    H = 0.5 * (Ja.T @ Jb + Jb.T @ Ja)
-    dy = -_floored_inverse(H) @ (0.5 * (Ja.T @ rb + Jb.T @ ra))
     rbar = 0.5 * (ra + rb)  # the residuals of the whole (the halves' mean)
     Jbar = 0.5 * (Ja + Jb)
-    m, n = rbar.size, H.shape[0]
+    Hx = 0.5 * (Ja.T @ Jb + Jb.T @ Ja)
+    H = Jbar.T @ Jbar
+    n = H.shape[0]
+    # H = C C^T; mu, V: the eigen-decomposition of C^-1 H_x C^-T
+    C = jnp.linalg.cholesky(H + 1e-9 * jnp.trace(H) / n * jnp.eye(n, dtype=H.dtype))
+    Ci = jax.scipy.linalg.solve_triangular(C, jnp.eye(n, dtype=H.dtype), lower=True)
+    M = Ci @ Hx @ Ci.T
+    mu, V = jnp.linalg.eigh(0.5 * (M + M.T))
+    mu = jnp.maximum(mu, MIN_CURVATURE_SHARE)
+    W = Ci.T @ V  # H_floored^-1 = W diag(1/mu) W^T
+    grad = 0.5 * (Ja.T @ rb + Jb.T @ ra)
+    dy = -(W / mu) @ (W.T @ grad)
+    m = rbar.size
     s2 = jnp.sum(rbar**2) / jnp.maximum(m - n, 1)
-    cov = s2 * _floored_inverse(Jbar.T @ Jbar)
+    cov = s2 * (W / mu) @ W.T
     return dy, jnp.sqrt(jnp.diag(cov)), 0.5 * jnp.sum(rbar**2)
 
 
@@ -257,35 +279,94 @@ def _settled(dy, sd, tol: float) -> bool:
     return bool(np.all(dy <= np.maximum(tol, sd)) and np.all(sd < SETTLE_MAX_SD))
 
 
-def _retraced_rounds(problem: FitProblem, keys, media, r: Run, eta, weights_at=None):
-    """A re-weighting transport's fit after the first solve: Gauss-Newton rounds, each on a
-    fresh trace with the current solution as the walks' proposal.
+# the re-weighting is trusted where the effective sample size keeps this share of the trace's
+MIN_EFFICIENCY = 0.3
+# the largest re-traced step (log coefficients): a shorter one when far from the solution
+MAX_ROUND_STEP = 0.5
+
+
+def channel_efficiency(problem: FitProblem, data: list[TraceData], media0, y) -> float:
+    """A re-weighting transport's sample efficiency at `y` on the trace `data`: per colour
+    channel, the median (over the rows with signal) of the effective sample size at `y`
+    over its value at the trace's proposal; the smallest of the channels' (each channel is
+    sampled with its own proposal, and one that has collapsed spoils its coefficients).
+    1 for the other transports."""
+    layout = problem.layout
+    media = layout.media(jnp.asarray(y)[: 3 * len(layout.free)], media0)
+    worst = 1.0
+    for terms in data[0].terms:
+        eff = terms.sample_efficiency(media)
+        if eff is None:
+            continue
+        eff = np.asarray(eff, dtype=np.float64)
+        for c in range(eff.shape[1]):
+            col = eff[:, c][eff[:, c] > 0]
+            if col.size:
+                worst = min(worst, float(np.median(col)))
+    return worst
+
+
+def _trusted_step(problem, residuals, data, args, y, dy, loss):
+    """The longest of `dy`, `dy / 2`, `dy / 4`, ... (first capped at `MAX_ROUND_STEP`) that
+    stays where the trace's re-weighting is trusted (`channel_efficiency` at least
+    `MIN_EFFICIENCY`) and does not raise the decorrelated loss `0.5 sum r_A r_B` of this
+    trace (an unbiased estimate of the noise-free loss there): a Gauss-Newton step from far
+    away overshoots, and a step past the trusted region lands on a re-weighting whose noise
+    is larger than the step. **Returns:** the step taken and its fraction of `dy`."""
+    big = np.max(np.abs(dy))
+    t = min(1.0, MAX_ROUND_STEP / big) if big > 0 else 1.0
+    for _ in range(8):
+        cand = y + jnp.asarray(t * dy, y.dtype)
+        if channel_efficiency(problem, data, args.media0, cand) >= MIN_EFFICIENCY:
+            if float(_cross_loss(residuals, cand, args)) <= loss:
+                return t * dy, t
+        t *= 0.5
+    return t * dy, t
+
+
+@eqx.filter_jit
+def _cross_loss(residuals, y, args):
+    r = residuals(y, args)
+    return 0.5 * jnp.sum(r[0] * r[1])
+
+
+def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = False, history=()):
+    """A re-weighting transport's fit: Gauss-Newton rounds, each on a fresh trace with the
+    current solution as the walks' proposal.
 
     A least-squares fit to a noisy model leans toward the coefficients whose image is least
     noisy (the model's variance is part of `E |t - m|^2`; for a walk, larger `sigma_a`
-    cuts the long, noisy paths), so the first solve's minimum is biased by the trace noise,
-    and re-weighting far from the proposal only makes that noise larger. Each round here
-    takes one Gauss-Newton step of `0.5 sum r_A r_B` at the proposal (the residuals of two
-    independent halves of the walks, whose expectation carries no model variance) with the
-    exact re-weighting derivatives there, then re-traces where it lands with new random
-    numbers, so no round can tune the solution to one trace's noise. The rounds stop when
-    two steps in a row are within their standard errors (or `proposal_tol`), or after
-    `proposal_rounds`; the solution is the mean of the later half of the rounds' (from
-    four rounds on), whose scatter is each trace's noise. **Returns:** `(data, run, rounds)`: the last trace, the run at the
-    solution (its `args` from the last trace) and the solution of each round."""
+    cuts the long, noisy paths), and re-weighting far from the proposal makes that noise
+    larger still, so a free solve on one trace from a distant start lands far from the truth
+    (measured on a thick slab: `sigma_s` 0.11 against 1.0 from a start at 0.7). Each round
+    here takes one Gauss-Newton step of `0.5 sum r_A r_B` at the proposal (the residuals of
+    two independent halves of the walks, whose expectation carries no model variance) with
+    the exact re-weighting derivatives there, shortened until it stays where the trace's
+    re-weighting is trusted and lowers that loss (`_trusted_step`), then re-traces where it
+    lands with new random numbers, so no round can tune the solution to one trace's noise.
+    With relative weighting (`refit`), each round's weights come from its model at the
+    proposal (where the trace is exact). The rounds stop when two steps in a row are
+    within their standard errors (or `proposal_tol`), or after `proposal_rounds`; the
+    solution is the mean of the later half of the rounds' (from four rounds on), whose
+    scatter is each trace's noise. **Returns:** `(data, run, rounds)`: the last trace, the
+    run at the solution (its `args` from the last trace) and the solution of each round."""
     opts = problem.options
     names = problem.names
-    y = r.y
     dt = jnp.float32 if jnp.asarray(y).dtype == jnp.float32 else jnp.float64
     residuals = residual_fn(problem.layout, opts.loss, True)
-    history, rounds = list(r.history), []
+    history, rounds = list(history), []
+    loss0 = None
     bar = Progress(opts.proposal_rounds, "re-traced rounds", problem.progress, every_line=True)
     data, args, converged, settled = None, None, False, 0
+    prev = None  # the previous round's trace: the relative weights' level, independent
     for k in range(opts.proposal_rounds):
         problem.proposal = problem.media_at(y, media)
         keys_k = [jax.random.fold_in(kk, 7_919 + k) for kk in keys]  # new random numbers
+        if refit and prev is None:  # the first round's weights: one more trace
+            prev, _ = problem.traced([jax.random.fold_in(kk, 104_729) for kk in keys], eta)
         data, _ = problem.traced(keys_k, eta)
-        args = problem.args(data, media, dt, weights_at)
+        args = problem.args(data, media, dt, y if refit else None, prev if refit else None)
+        prev = data
         if args.halves is None:
             raise FitError(
                 "the traces cannot be split into independent halves (odd walkers per "
@@ -298,16 +379,21 @@ def _retraced_rounds(problem: FitProblem, keys, media, r: Run, eta, weights_at=N
                 "the re-traced Gauss-Newton step is not finite (a trace with no signal in "
                 "the fitted pixels?): check the target and the mask"
             )
-        big = np.max(np.abs(dy))
-        if big > 0.5:  # far from the solution: a shorter step in the same direction
-            dy *= 0.5 / big
+        if loss0 is None:
+            loss0 = float(loss)
+            history.append(
+                {"step": len(history), "loss": loss0, "params": problem.values(y).tolist()}
+            )
+        dy, frac = _trusted_step(
+            problem, residuals, data, args, y, dy, float(_cross_loss(residuals, y, args))
+        )
         y = y + jnp.asarray(dy, y.dtype)
         rounds.append(np.asarray(y, np.float64))
         history.append(
             {"step": len(history), "loss": float(loss), "params": problem.values(y).tolist()}
         )
         _progress_line(bar, k + 1, float(loss), names, problem.values(y))
-        settled = settled + 1 if _settled(dy, sd, opts.proposal_tol) else 0
+        settled = settled + 1 if frac == 1.0 and _settled(dy, sd, opts.proposal_tol) else 0
         if settled >= 2:  # two steps in a row within their noise
             converged = True
             break
@@ -323,8 +409,8 @@ def _retraced_rounds(problem: FitProblem, keys, media, r: Run, eta, weights_at=N
     run_ = Run(
         y,
         args,
-        r.steps + len(rounds),
-        r.loss0,
+        len(rounds),
+        loss0,
         history,
         converged,
         "successful" if converged else "max_steps_reached",
@@ -343,14 +429,23 @@ def run(problem: FitProblem) -> Outcome:
     if problem.eta is not None:
         eta, tried, y_start, loss0, bounds, (data, media) = search_eta(problem, keys, y0)
         out.eta, out.eta_search, out.eta_loss0, out.eta_bounds = eta, tried, loss0, bounds
+    elif problem.reweighted:
+        # no free solve on the first trace: far from its proposal, a re-weighted trace is
+        # too noisy to be fitted (see `_retraced_rounds`), so the rounds start at y0
+        refit = WEIGHTINGS[problem.options.weighting].refit
+        media = dict(problem.scene.media())
+        out.data, out.run, rounds = _retraced_rounds(problem, keys, media, y0, None, refit)
+        out.trace_sd = _rounds_sd(rounds)
+        return out
     else:
         (data, media), y_start = problem.traced(keys), y0
     r = solve(problem, data, media, y_start)
     refit = WEIGHTINGS[problem.options.weighting].refit
     if problem.reweighted:
         out.data, out.run, rounds = _retraced_rounds(
-            problem, keys, media, r, out.eta, weights_at=r.y if refit else None
+            problem, keys, media, r.y, out.eta, refit, r.history
         )
+        out.run.steps += r.steps
         out.trace_sd = _rounds_sd(rounds)
         return out
     out.data = data
