@@ -187,6 +187,42 @@ def test_fit_file_synthetic_target_of_another_transport(tmp_path):
         load_fit_file(f)
 
 
+SHIPPED_FITS = sorted((ROOT / "fits").glob("*.toml"))
+
+
+@pytest.mark.parametrize("path", SHIPPED_FITS, ids=[p.stem for p in SHIPPED_FITS])
+def test_shipped_fit_files_load(path):
+    """Every fit file in `fits/` parses, names parameters of its scene and starts away from
+    its scene's (true) values."""
+    from sssjax.fit import load_fit_file
+
+    job = load_fit_file(path)
+    assert job.target is not None or job.synthetic_seed is not None
+    assert job.init
+    media = job.scene.media()
+    for name, value in job.init.items():
+        mat, field = name.split(".")[:2]
+        if mat in media and field in ("sigma_a", "sigma_s"):
+            true = np.asarray(getattr(media[mat], field))
+            assert np.all(np.abs(np.asarray(value) / true - 1) > 0.2), (name, value, true)
+
+
+def test_the_skin_slab_pair_fits_one_target():
+    """`fits/skin_slab_diffusion.toml` and `fits/skin_slab_volumetric.toml` are the same
+    exact target fitted by the two transports: the scenes their targets are rendered from
+    are equal (volumetric, same samples), the seeds too, and only the fits' transports
+    differ."""
+    from sssjax.fit import load_fit_file
+
+    d, v = (
+        load_fit_file(ROOT / "fits" / f"skin_slab_{t}.toml") for t in ("diffusion", "volumetric")
+    )
+    assert d.synthetic_scene == v.synthetic_scene and d.synthetic_seed == v.synthetic_seed
+    assert d.synthetic_scene.sss.transport == "volumetric"
+    assert (d.scene.sss.transport, v.scene.sss.transport) == ("diffusion", "volumetric")
+    assert d.init == v.init and d.params == v.params and d.seed == v.seed
+
+
 @pytest.mark.slow
 def test_robust_loss_ignores_outlier_pixels(cube):
     """2% of the translucent pixels replaced by bright outliers (a highlight, dust): the plain
