@@ -199,6 +199,14 @@ def report(problem: FitProblem, out: Outcome, t_start: float) -> FitResult:
             f"the re-weighting's effective sample size fell to {efficiency:.0%} of the "
             "trace's: the error bars understate the trace noise; raise proposal_rounds"
         )
+    if problem.reweighted and not run.converged:
+        # measured (fits/README.md, the skin slab): unsettled rounds' bars were 3-10x too
+        # small (the walks' derivative noise inflates J^T J; single rounds step far)
+        warnings.append(
+            "the re-traced rounds did not settle: read the error bars as lower bounds (on "
+            "exact targets they understated the error several-fold); raise spp or "
+            "proposal_rounds"
+        )
     warnings += _identifiability(problem, names, corr)
     warnings += _fit_quality(problem, out, names, tanh_idx, sd_log, r)
     # an unidentified parameter has an infinite error bar (not 0 x inf = nan)
