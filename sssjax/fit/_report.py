@@ -9,7 +9,6 @@ import time
 import equinox as eqx
 import numpy as np
 
-from ..transport import TRANSPORTS
 from ._problem import FitProblem, residual_args, residual_fn
 from ._result import FitResult
 from ._solve import Outcome, jacobian, loss_at
@@ -77,10 +76,9 @@ def _identifiability(problem: FitProblem, names, corr) -> list[str]:
     ss_on = problem.scene.sss.single_scattering
     # only the diffusion term reduces sigma_s to sigmap_s (a volumetric walk sees sigma_s and
     # g apart), and only where g != 0 is that a loss
-    diffusion = not TRANSPORTS.get_entry(problem.scene.sss.transport).reweighted
     media = problem.scene.media()
     forward = sorted(m for m, f in free if f == "sigma_s" and float(np.max(np.abs(media[m].g))) > 0)
-    if diffusion and forward and not ss_on:
+    if not problem.reweighted and forward and not ss_on:
         warnings.append(
             f"{', '.join(forward)}: sigma_s is free but single scattering is off: the dipole "
             "sees only sigmap_s = sigma_s (1 - g)"
