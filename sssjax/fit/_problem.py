@@ -215,6 +215,14 @@ class Args(eqx.Module):
     halves: tuple | None = None
 
 
+def row_pixels(data: list[TraceData]) -> np.ndarray:
+    """The pixels (flat image indices) that the residual rows of `data` cover, in order:
+    those every trace has (`residual_args`); row `3 i + c` is channel `c` of pixel `i`."""
+    if len(data) == 1:
+        return np.asarray(data[0].pix)
+    return functools.reduce(np.intersect1d, [d.pix for d in data])
+
+
 def residual_args(data: list[TraceData], media0: dict, loss_scale, dt) -> Args:
     """The `Args` of the traces in `data` (independent traces of the same target, averaged
     on the pixels they share), with unit weights; `media0` by name, at the traced `eta`.
@@ -225,7 +233,7 @@ def residual_args(data: list[TraceData], media0: dict, loss_scale, dt) -> Args:
     sharper kernels lean on the per-pixel near field rather than the noisy cloud), falls
     as 1/K instead of staying."""
     if len(data) > 1:
-        common = functools.reduce(np.intersect1d, [d.pix for d in data])
+        common = row_pixels(data)
         sel = []
         for d in data:
             order_p = np.argsort(d.pix)

@@ -168,6 +168,12 @@ def report(problem: FitProblem, out: Outcome, t_start: float) -> FitResult:
         names = names + [problem.eta.name]
         tanh_idx = np.append(tanh_idx, False)
     cov_log, warnings = covariance(J, r)
+    if out.cov_log is not None:
+        # the rounds' pooled sandwich (target and trace noise) replaces the last trace's
+        # `J^T J`, which the walks' derivative noise inflates; a free eta keeps its own
+        # row and column (re-traced central differences)
+        k = out.cov_log.shape[0]
+        cov_log[:k, :k] = out.cov_log
     vals = problem.values(y)
     # d value / d y: value for log coordinates, 1 - g^2 for atanh
     dval = np.where(tanh_idx[: y.size], 1.0 - vals**2, vals)
@@ -184,8 +190,12 @@ def report(problem: FitProblem, out: Outcome, t_start: float) -> FitResult:
         if out.eta is not None:
             trace_sd = np.append(trace_sd, 0.0)  # refine re-fits the others at eta*
         trace_stderr = dict(zip(names, (dval * trace_sd).tolist(), strict=True))
-        sd_log = np.sqrt(sd_log**2 + trace_sd**2)
-        ratio = np.max(trace_sd / np.maximum(np.sqrt(np.abs(np.diag(cov_log))), 1e-300))
+        if out.cov_log is None:  # refine's trace noise comes on top of the statistical
+            stat_sd = np.sqrt(np.abs(np.diag(cov_log)))
+            sd_log = np.sqrt(sd_log**2 + trace_sd**2)
+        else:  # the rounds' covariance holds both
+            stat_sd = np.append(out.target_sd, np.sqrt(np.abs(diag[out.target_sd.size :])))
+        ratio = np.max(trace_sd / np.maximum(stat_sd, 1e-300))
         if ratio > 2:
             warnings.append(
                 f"trace noise dominates the error (up to {ratio:.0f}x the statistical "
