@@ -219,7 +219,8 @@ def report(problem: FitProblem, out: Outcome, t_start: float) -> FitResult:
     warnings += _fit_quality(problem, out, names, tanh_idx, sd_log, r)
     # an unidentified parameter has an infinite error bar (not 0 x inf = nan)
     stderr = np.where(np.isfinite(sd_log), dval * np.where(np.isfinite(sd_log), sd_log, 0), np.inf)
-    steps, loss_initial = run.steps, loss_at(problem, problem.y0, run.args)
+    dec = problem.reweighted  # the loss without the model's variance
+    steps, loss_initial = run.steps, loss_at(problem, problem.y0, run.args, dec)
     if out.eta is not None:
         steps += sum(t["steps"] for t in out.eta_search)
         loss_initial = out.eta_loss0  # at the initial eta, not the fitted one
@@ -238,7 +239,7 @@ def report(problem: FitProblem, out: Outcome, t_start: float) -> FitResult:
         media=dict(zip(layout.order, fitted, strict=True)),
         steps=steps,
         loss_initial=loss_initial,
-        loss_final=loss_at(problem, y, run.args),
+        loss_final=loss_at(problem, y, run.args, dec),
         status=run.status,
         message=run.message,
         converged=bool(run.converged),

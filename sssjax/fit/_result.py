@@ -27,6 +27,9 @@ class FitResult:
 
     `values`, `stderr`: per parameter name (`"marble.sigma_a.R"`), in mm^-1.
     `correlation`: parameter correlation matrix (order of `names`).
+    `loss_initial`, `loss_final`: `0.5 sum r^2` at the start and the solution, on the last
+    trace; for a re-weighting (volumetric) fit `0.5 sum r_A r_B` of its two halves, which
+    carries no model variance.
     """
 
     names: list[str]

@@ -257,8 +257,14 @@ def _step(slv, fn, y, args, options, state):
     return y, state, done, res, state.f_info.as_min()
 
 
-def loss_at(problem: FitProblem, y, args: Args) -> float:
-    """`0.5 sum r^2` of the (robust) residuals at `y`."""
+def loss_at(problem: FitProblem, y, args: Args, decorrelated: bool = False) -> float:
+    """`0.5 sum r^2` of the (robust) residuals at `y`; `decorrelated` (a trace that splits
+    into halves): `0.5 sum r_A r_B`, which carries no model variance (the plain loss of a
+    re-weighted trace is lower wherever its re-weighting is less noisy, e.g. at a start of
+    larger `sigma_a`, so it can read as rising over a fit that found the truth)."""
+    if decorrelated and args.halves is not None:
+        residuals = residual_fn(problem.layout, problem.options.loss, True)
+        return float(_cross_loss(residuals, y, args))
     return float(_loss(residual_fn(problem.layout, problem.options.loss), y, args))
 
 
