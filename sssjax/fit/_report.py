@@ -208,12 +208,11 @@ def report(problem: FitProblem, out: Outcome, t_start: float) -> FitResult:
             "trace's: the error bars understate the trace noise; raise proposal_rounds"
         )
     if problem.reweighted and not run.converged:
-        # measured (fits/README.md, the skin slab): unsettled rounds' bars were 3-10x too
-        # small (the walks' derivative noise inflates J^T J; single rounds step far)
+        # the pooled covariance is that of the rounds' root: rounds still stepping beyond
+        # their errors have not reached it, and the distance left is not in the bars
         warnings.append(
-            "the re-traced rounds did not settle: read the error bars as lower bounds (on "
-            "exact targets they understated the error several-fold); raise spp or "
-            "proposal_rounds"
+            "the re-traced rounds did not settle (their last steps beyond their errors): "
+            "read the error bars as lower bounds; raise proposal_rounds or spp"
         )
     warnings += _identifiability(problem, names, corr)
     warnings += _fit_quality(problem, out, names, tanh_idx, sd_log, r)

@@ -495,7 +495,9 @@ def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = Fal
     rounds' information adds up instead of a chain of short steps forgetting it. With
     relative weighting (`refit`), each round's weights come from the previous trace at
     the proposal (independent of its own noise). The rounds stop when two full steps in a
-    row are within their standard errors (or `proposal_tol`), or after `proposal_rounds`.
+    row are within their standard errors (or `proposal_tol`) and those are below
+    `SETTLE_MAX_SD`, or after `proposal_rounds`; then the fit has converged too if its last
+    two full steps were within their (wider) errors.
     **Returns:** `Rounds`."""
     opts = problem.options
     names = problem.names
@@ -504,7 +506,7 @@ def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = Fal
     history = list(history)
     loss0 = None
     bar = Progress(opts.proposal_rounds, "re-traced rounds", problem.progress, every_line=True)
-    data, args, converged, settled = None, None, False, 0
+    data, args, converged, settled, at_root = None, None, False, 0, 0
     prev = None  # the previous round's trace: the relative weights' level, independent
     pool, start, n_rounds = [], 0, 0  # (round, linearisation) since the approach ended
     for k in range(opts.proposal_rounds):
@@ -550,19 +552,30 @@ def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = Fal
         if frac < 1.0:
             start = k + 1  # still approaching: the rounds so far were linearised too far away
         settled = settled + 1 if frac == 1.0 and _settled(dy, sd, opts.proposal_tol) else 0
+        within = frac == 1.0 and bool(np.all(np.abs(dy) <= np.maximum(opts.proposal_tol, sd)))
+        at_root = at_root + 1 if within else 0
         if settled >= 2:  # two steps in a row within their noise
             converged = True
             break
     bar.close()
+    # all rounds used, the last two full steps within their (wide) errors: the solution is
+    # at the root of the pooled equation, and its covariance is that root's; the bars are
+    # wide, not understated (what "did not settle" warns of)
+    wide = not converged and at_root >= 2
     # the solution's covariance from the rounds that found it (the approach's last round
     # alone when the last step was still shortened)
     window = [p for i, p in pool if i >= start] or [pool[-1][1]]
     cov, cov_target = pooled_covariance(window, y)
-    message = (
-        "converged (the last re-traced step within its error)"
-        if converged
-        else (f"the re-traced steps did not settle within {opts.proposal_rounds} rounds")
-    )
+    if converged:
+        message = "converged (the last re-traced step within its error)"
+    elif wide:
+        converged = True
+        message = (
+            f"converged at the root of the pooled rounds ({opts.proposal_rounds} rounds, the "
+            f"last steps within their errors, some of these above {SETTLE_MAX_SD:.0%})"
+        )
+    else:
+        message = f"the re-traced steps did not settle within {opts.proposal_rounds} rounds"
     status = "successful" if converged else "max_steps_reached"
     run_ = Run(y, args, n_rounds, loss0, history, converged, status, message)
     return Rounds(data, run_, cov, cov_target)
