@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import sssjax
-from sssjax.fit import _solve
+from sssjax.fit import FitError, _solve
 
 SIGMA_A = [0.08, 0.12, 0.2]  # 1/mm; albedo 0.93, 0.87, 0.75
 SIGMA_S = [1.0, 0.8, 0.6]
@@ -87,6 +87,17 @@ def test_volumetric_fit_recovers_an_exact_target_and_its_error_bars_cover_the_tr
     zs = np.abs(np.array(zs))
     assert np.sum(zs >= 2) <= 2 and np.all(zs < 3.5), np.round(zs, 2)
     assert np.median(rel_sd) < 0.3, np.round(rel_sd, 3)
+
+
+@pytest.mark.parametrize(
+    "params, message", [(["sigma_a", "eta"], "m.eta: .* cannot fit eta"), (["g"], "cannot fit g")]
+)
+def test_volumetric_fit_refuses_what_it_cannot_re_weight(params, message):
+    """`eta` bends the walks and `g` shapes them: neither can be re-weighted, so a fit that
+    frees them is refused with one line naming the parameter (before any tracing)."""
+    scene = _slab(SIGMA_A, SIGMA_S, n=8, spp=2)
+    with pytest.raises(FitError, match=message):
+        sssjax.fit(scene, np.ones((8, 8, 3), np.float32), params=params)
 
 
 def _round(y, j, r, t=None):
@@ -171,3 +182,33 @@ def test_instruments_keep_a_smooth_derivative_and_average_its_noise():
     assert smooth.shape == noise.shape
     expect = 4 * np.pi * _solve.INSTRUMENT_BLUR**2
     assert 0.6 * expect < np.var(noise) / np.var(smooth) < 2.0 * expect
+
+
+@pytest.mark.parametrize(
+    "steps, converged, message",
+    [
+        # small steps, small errors: settled after two (the rounds stop early)
+        ([(0.4, 0.05, 0.5), (0.01, 0.03, 1.0), (0.02, 0.03, 1.0)], True, "converged (the"),
+        # steps within wide errors (above 10 %): at the root, converged with wide bars
+        ([(0.3, 0.5, 1.0), (0.2, 0.4, 1.0), (0.1, 0.3, 1.0)], True, "at the root"),
+        # the last step beyond its error: still drifting, not converged
+        ([(0.1, 0.5, 1.0), (0.1, 0.4, 1.0), (0.2, 0.05, 1.0)], False, "did not settle"),
+        # the last step shortened (still approaching): not converged
+        ([(0.1, 0.5, 1.0), (0.1, 0.4, 1.0), (0.1, 0.4, 0.5)], False, "did not settle"),
+        # one step within its error is not two in a row
+        ([(0.3, 0.05, 1.0), (0.2, 0.05, 1.0), (0.01, 0.04, 1.0)], False, "did not settle"),
+    ],
+)
+def test_rounds_stop_tells_settled_at_the_root_and_drifting_apart(steps, converged, message):
+    """The rounds' stopping rule on given sequences of (step, its standard error, the
+    fraction of the step taken), one coefficient per round repeated over three."""
+    stop = _solve.RoundsStop(tol=1e-3)
+    n = 0
+    for dy, sd, frac in steps:
+        n += 1
+        if stop.after(np.full(3, dy), np.full(3, sd), frac):
+            break
+    ok, msg = stop.verdict(n)
+    assert ok is converged and message in msg, (ok, msg)
+    if message.startswith("converged (the"):
+        assert n == 3  # stopped as soon as two steps in a row settled

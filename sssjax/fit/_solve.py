@@ -409,6 +409,40 @@ def _settled(dy, sd, tol: float) -> bool:
     return bool(np.all(dy <= np.maximum(tol, sd)) and np.all(sd < SETTLE_MAX_SD))
 
 
+@dataclasses.dataclass
+class RoundsStop:
+    """The stopping rule of the re-traced rounds, fed one round at a time (`after`).
+
+    Counts the consecutive full (not shortened) steps that were `_settled` and those within
+    their errors at all (`at_root`, whatever those errors). `after` says to stop at two
+    settled steps in a row; `verdict` at the end: converged when stopped so, or, all rounds
+    used, when the last two full steps were within their (wide) errors: the solution is then
+    at the root of the pooled equation and its covariance is that root's (wide bars, not
+    understated ones). Otherwise the rounds were still moving."""
+
+    tol: float
+    settled: int = 0
+    at_root: int = 0
+
+    def after(self, dy, sd, frac: float) -> bool:
+        full = frac == 1.0
+        self.settled = self.settled + 1 if full and _settled(dy, sd, self.tol) else 0
+        within = full and bool(np.all(np.abs(dy) <= np.maximum(self.tol, np.asarray(sd))))
+        self.at_root = self.at_root + 1 if within else 0
+        return self.settled >= 2
+
+    def verdict(self, rounds: int) -> tuple[bool, str]:
+        """**Returns:** `(converged, message)` after `rounds` rounds."""
+        if self.settled >= 2:
+            return True, "converged (the last re-traced step within its error)"
+        if self.at_root >= 2:
+            return True, (
+                f"converged at the root of the pooled rounds ({rounds} rounds, the last "
+                f"steps within their errors, some of these above {SETTLE_MAX_SD:.0%})"
+            )
+        return False, f"the re-traced steps did not settle within {rounds} rounds"
+
+
 # the re-weighting is trusted where the effective sample size keeps this share of the trace's
 MIN_EFFICIENCY = 0.3
 # the largest re-traced step (log coefficients): a shorter one when far from the solution
@@ -496,9 +530,8 @@ def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = Fal
     relative weighting (`refit`), each round's weights come from the previous trace at
     the proposal (independent of its own noise). The rounds stop when two full steps in a
     row are within their standard errors (or `proposal_tol`) and those are below
-    `SETTLE_MAX_SD`, or after `proposal_rounds`; then the fit has converged too if its last
-    two full steps were within their (wider) errors.
-    **Returns:** `Rounds`."""
+    `SETTLE_MAX_SD`, or after `proposal_rounds` (`RoundsStop`, which also says whether the
+    fit converged). **Returns:** `Rounds`."""
     opts = problem.options
     names = problem.names
     dt = jnp.float32 if jnp.asarray(y).dtype == jnp.float32 else jnp.float64
@@ -506,7 +539,7 @@ def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = Fal
     history = list(history)
     loss0 = None
     bar = Progress(opts.proposal_rounds, "re-traced rounds", problem.progress, every_line=True)
-    data, args, converged, settled, at_root = None, None, False, 0, 0
+    data, args, stop = None, None, RoundsStop(opts.proposal_tol)
     prev = None  # the previous round's trace: the relative weights' level, independent
     pool, start, n_rounds = [], 0, 0  # (round, linearisation) since the approach ended
     for k in range(opts.proposal_rounds):
@@ -551,31 +584,14 @@ def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = Fal
         _progress_line(bar, k + 1, loss, names, problem.values(y))
         if frac < 1.0:
             start = k + 1  # still approaching: the rounds so far were linearised too far away
-        settled = settled + 1 if frac == 1.0 and _settled(dy, sd, opts.proposal_tol) else 0
-        within = frac == 1.0 and bool(np.all(np.abs(dy) <= np.maximum(opts.proposal_tol, sd)))
-        at_root = at_root + 1 if within else 0
-        if settled >= 2:  # two steps in a row within their noise
-            converged = True
+        if stop.after(dy, sd, frac):  # two steps in a row within their noise
             break
     bar.close()
-    # all rounds used, the last two full steps within their (wide) errors: the solution is
-    # at the root of the pooled equation, and its covariance is that root's; the bars are
-    # wide, not understated (what "did not settle" warns of)
-    wide = not converged and at_root >= 2
+    converged, message = stop.verdict(n_rounds)
     # the solution's covariance from the rounds that found it (the approach's last round
     # alone when the last step was still shortened)
     window = [p for i, p in pool if i >= start] or [pool[-1][1]]
     cov, cov_target = pooled_covariance(window, y)
-    if converged:
-        message = "converged (the last re-traced step within its error)"
-    elif wide:
-        converged = True
-        message = (
-            f"converged at the root of the pooled rounds ({opts.proposal_rounds} rounds, the "
-            f"last steps within their errors, some of these above {SETTLE_MAX_SD:.0%})"
-        )
-    else:
-        message = f"the re-traced steps did not settle within {opts.proposal_rounds} rounds"
     status = "successful" if converged else "max_steps_reached"
     run_ = Run(y, args, n_rounds, loss0, history, converged, status, message)
     return Rounds(data, run_, cov, cov_target)
