@@ -187,21 +187,22 @@ def test_instruments_keep_a_smooth_derivative_and_average_its_noise():
 @pytest.mark.parametrize(
     "steps, converged, message",
     [
-        # small steps, small errors: settled after two (the rounds stop early)
-        ([(0.4, 0.05, 0.5), (0.01, 0.03, 1.0), (0.02, 0.03, 1.0)], True, "converged (the"),
-        # steps within wide errors (above 10 %): at the root, converged with wide bars
+        # near the root, small errors: settled after two (the rounds stop early)
+        ([(0.4, 0.05, 0.5), (0.01, 0.03, 1.0), (0.02, 0.03, 1.0)], True, "converged (within"),
+        # within wide errors (above 10 %) of the root: converged with wide bars
         ([(0.3, 0.5, 1.0), (0.2, 0.4, 1.0), (0.1, 0.3, 1.0)], True, "at the root"),
-        # the last step beyond its error: still drifting, not converged
+        # the last offset beyond its error: still moving, not converged
         ([(0.1, 0.5, 1.0), (0.1, 0.4, 1.0), (0.2, 0.05, 1.0)], False, "did not settle"),
         # the last step shortened (still approaching): not converged
         ([(0.1, 0.5, 1.0), (0.1, 0.4, 1.0), (0.1, 0.4, 0.5)], False, "did not settle"),
-        # one step within its error is not two in a row
+        # one round within its error is not two in a row
         ([(0.3, 0.05, 1.0), (0.2, 0.05, 1.0), (0.01, 0.04, 1.0)], False, "did not settle"),
     ],
 )
 def test_rounds_stop_tells_settled_at_the_root_and_drifting_apart(steps, converged, message):
-    """The rounds' stopping rule on given sequences of (step, its standard error, the
-    fraction of the step taken), one coefficient per round repeated over three."""
+    """The rounds' stopping rule on given sequences of (the offset from the pooled root,
+    its standard error, the fraction of the step taken), one value repeated over three
+    coefficients."""
     stop = _solve.RoundsStop(tol=1e-3)
     n = 0
     for dy, sd, frac in steps:
@@ -210,5 +211,30 @@ def test_rounds_stop_tells_settled_at_the_root_and_drifting_apart(steps, converg
             break
     ok, msg = stop.verdict(n)
     assert ok is converged and message in msg, (ok, msg)
-    if message.startswith("converged (the"):
+    if message.startswith("converged (within"):
         assert n == 3  # stopped as soon as two steps in a row settled
+
+
+def test_root_offset_is_the_distance_to_the_pooled_root_where_the_step_is_damped(x64):
+    """Rounds of a linear model with noisy instruments: `root_offset` is the exact distance
+    to the root of the pooled equation (its slope is exact for a linear model), while the
+    step taken (the instruments' Gram matrix, inflated by their noise) covers only part of
+    it: the stopping rule must judge the offset, or a slow drift looks settled."""
+    rng = np.random.default_rng(4)
+    m, n = 400, 3
+    J = rng.normal(size=(m, n))
+    rounds = []
+    for _ in range(3):
+        yk = rng.normal(size=n)
+        t = [J + 2.0 * rng.normal(size=(m, n)) for _ in range(2)]  # noisy instruments
+        c = rng.normal(size=(2, m))
+        rounds.append(_round(yk, [J, J], c + J @ yk, np.stack(t)))
+    y = np.zeros(n)
+    # the pooled equation is linear in y: solve it from its value and slope
+    g0 = sum(rd.contributions(y).sum(axis=0) for rd in rounds)
+    B = sum(rd.slope() for rd in rounds)
+    root = y - np.linalg.solve(B, g0)
+    off = _solve.root_offset(rounds, y)
+    np.testing.assert_allclose(y + off, root, atol=1e-9)
+    step = _solve.pooled_step(rounds, y)
+    assert np.linalg.norm(step) < 0.5 * np.linalg.norm(off)  # damped: noise in the Gram

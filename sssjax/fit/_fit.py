@@ -42,7 +42,8 @@ def fit(
       `sigma_a`, `sigma_s`, `sigmap_s` (each RGB, mm^-1), `g` (the Henyey-Greenstein mean
       cosine, RGB; the diffusion term sees only `sigmap_s = sigma_s (1 - g)`, so `g` is
       separated from `sigma_s` by single scattering alone), `eta` (re-traced; bounded Brent
-      search over `eta_init +- 0.3`), the material omitted when there is only one;
+      search over `eta_init +- 0.3`; not with the volumetric transport, which cannot
+      re-weight it, nor `g`), the material omitted when there is only one;
       `"exposure"`: one overall factor on the rendered image (an uncalibrated camera or
       light); `"lights.N"`: a factor on the emission of the scene's `N`-th light (0-based, in
       `[[lights]]` order), for lamps of unknown relative power. Each free light costs one

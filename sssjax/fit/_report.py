@@ -211,7 +211,7 @@ def report(problem: FitProblem, out: Outcome, t_start: float) -> FitResult:
         # the pooled covariance is that of the rounds' root: rounds still stepping beyond
         # their errors have not reached it, and the distance left is not in the bars
         warnings.append(
-            "the re-traced rounds did not settle (their last steps beyond their errors): "
+            "the re-traced rounds did not settle (the solution beyond its errors of their root): "
             "read the error bars as lower bounds; raise proposal_rounds or spp"
         )
     warnings += _identifiability(problem, names, corr)
