@@ -90,14 +90,32 @@ def test_volumetric_fit_recovers_an_exact_target_and_its_error_bars_cover_the_tr
 
 
 @pytest.mark.parametrize(
-    "params, message", [(["sigma_a", "eta"], "m.eta: .* cannot fit eta"), (["g"], "cannot fit g")]
+    "params, kw, message",
+    [
+        (["sigma_a", "eta"], {}, "m.eta: .* cannot fit eta"),
+        (["g"], {}, "cannot fit g"),
+        (None, {"proposal_rounds": 0}, "proposal_rounds must be >= 1"),
+    ],
 )
-def test_volumetric_fit_refuses_what_it_cannot_re_weight(params, message):
+def test_volumetric_fit_refuses_what_it_cannot_re_weight(params, kw, message):
     """`eta` bends the walks and `g` shapes them: neither can be re-weighted, so a fit that
-    frees them is refused with one line naming the parameter (before any tracing)."""
+    frees them is refused with one line naming the parameter (before any tracing); a fit
+    of no rounds is refused too."""
     scene = _slab(SIGMA_A, SIGMA_S, n=8, spp=2)
     with pytest.raises(FitError, match=message):
-        sssjax.fit(scene, np.ones((8, 8, 3), np.float32), params=params)
+        sssjax.fit(scene, np.ones((8, 8, 3), np.float32), params=params, **kw)
+
+
+def test_fit_file_freeing_eta_of_a_volumetric_scene_is_refused_when_read():
+    """The refusal comes from reading the fit file, before its synthetic target (a
+    volumetric render) would be rendered."""
+    from pathlib import Path
+
+    from sssjax.fit import load_fit_file
+
+    path = Path(__file__).parent / "data" / "bad_fits" / "volumetric_eta_free.toml"
+    with pytest.raises(FitError, match="skin.eta: .* cannot fit eta"):
+        load_fit_file(path)
 
 
 def _round(y, j, r, t=None):
@@ -188,7 +206,11 @@ def test_instruments_keep_a_smooth_derivative_and_average_its_noise():
     "steps, converged, message",
     [
         # near the root, small errors: settled after two (the rounds stop early)
-        ([(0.4, 0.05, 0.5), (0.01, 0.03, 1.0), (0.02, 0.03, 1.0)], True, "converged (within"),
+        (
+            [(0.4, 0.05, 0.5), (0.01, 0.03, 1.0), (0.02, 0.03, 1.0), (0.5, 0.03, 1.0)],
+            True,
+            "converged (within",
+        ),
         # within wide errors (above 10 %) of the root: converged with wide bars
         ([(0.3, 0.5, 1.0), (0.2, 0.4, 1.0), (0.1, 0.3, 1.0)], True, "at the root"),
         # the last offset beyond its error: still moving, not converged
@@ -236,5 +258,8 @@ def test_root_offset_is_the_distance_to_the_pooled_root_where_the_step_is_damped
     root = y - np.linalg.solve(B, g0)
     off = _solve.root_offset(rounds, y)
     np.testing.assert_allclose(y + off, root, atol=1e-9)
+    # the defining property: the pooled equation vanishes there
+    g1 = sum(rd.contributions(y + off).sum(axis=0) for rd in rounds)
+    assert np.max(np.abs(g1)) < 1e-9 * np.max(np.abs(g0))
     step = _solve.pooled_step(rounds, y)
     assert np.linalg.norm(step) < 0.5 * np.linalg.norm(off)  # damped: noise in the Gram

@@ -7,8 +7,6 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from .. import params as _params
 from .._fitfile import check_fit_file
 from .._registry import did_you_mean
@@ -113,11 +111,8 @@ def load_fit_file(path: str | Path) -> FitJob:
         options = FitOptions(**solver)
     except FitError as e:
         raise FitError(f"{path}: [solver]: {e}") from None
-    # everything `fit` checks of the parameters, before a synthetic target is rendered
-    cam = scene.camera
-    try:
-        placeholder = np.ones((cam.height, cam.width, 3), np.float32)
-        FitProblem.build(scene, placeholder, params, init, None, seed, options, False)
+    try:  # what `fit` checks of the parameters, before a synthetic target is rendered
+        FitProblem.checked_params(scene, params, init, options)
     except FitError as e:
         raise FitError(f"{path}: {e}") from None
     return FitJob(

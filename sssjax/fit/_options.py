@@ -100,8 +100,9 @@ class FitOptions:
       difference between the two single-trace fits measures the trace noise, reported in
       `trace_stderr` and added (in quadrature) to `stderr`.
     - `proposal_rounds`, `proposal_tol`: with a re-weighting transport (`volumetric`), how
-      many times at most the fit re-traces with its solution as the walks' proposal, and the
-      change of the solution (relative, in every coefficient) below which it stops early.
+      many times at most the fit re-traces with its solution as the walks' proposal (at
+      least 1 there), and the floor (relative, in every coefficient) on the error within
+      which the solution counts as at the rounds' root: it stops early there.
     """
 
     solver: str = "lm"

@@ -332,6 +332,18 @@ class FitProblem:
         """Validate everything a fit is given (one-line `FitError`s)."""
         cam = scene.camera
         tgt = load_target(target, (cam.height, cam.width))
+        free, start = cls.checked_params(scene, params, init, options)
+        if mask is not None:
+            mask = np.asarray(mask, dtype=bool)
+            if mask.shape != (cam.height, cam.width):
+                raise FitError(f"mask has shape {mask.shape}, expected {(cam.height, cam.width)}")
+        return cls(scene, tgt, free, start, options, mask, seed, progress, fit_mask=mask)
+
+    @staticmethod
+    def checked_params(scene, params, init, options) -> tuple[list[Parameter], dict]:
+        """The free parameters and their starting values, checked against the scene and its
+        transport (one-line `FitError`s): what a fit file is checked for when it is read,
+        before any target is rendered. **Returns:** `(free, start by name)`."""
         try:
             free = _params.resolve(scene, params)
             given = {_params.canonical(scene, k): v for k, v in (init or {}).items()}
@@ -363,11 +375,12 @@ class FitProblem:
                     'measure it on a flat sample with transport = "diffusion" and profile = '
                     '"tabulated"'
                 )
-        if mask is not None:
-            mask = np.asarray(mask, dtype=bool)
-            if mask.shape != (cam.height, cam.width):
-                raise FitError(f"mask has shape {mask.shape}, expected {(cam.height, cam.width)}")
-        return cls(scene, tgt, free, start, options, mask, seed, progress, fit_mask=mask)
+            if options.proposal_rounds < 1:
+                raise FitError(
+                    f"proposal_rounds must be >= 1 with the {scene.sss.transport} transport "
+                    "(its fit is re-traced rounds), got 0"
+                )
+        return free, start
 
     # -- what the coordinates are --------------------------------------------------------
     def _of(self, enters: Enters) -> list[Parameter]:

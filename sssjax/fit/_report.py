@@ -208,11 +208,12 @@ def report(problem: FitProblem, out: Outcome, t_start: float) -> FitResult:
             "trace's: the error bars understate the trace noise; raise proposal_rounds"
         )
     if problem.reweighted and not run.converged:
-        # the pooled covariance is that of the rounds' root: rounds still stepping beyond
-        # their errors have not reached it, and the distance left is not in the bars
+        # the pooled covariance is that of the rounds' root: rounds still moving beyond
+        # their errors (or still shortening steps) have not reached it, and the distance
+        # left is not in the bars
         warnings.append(
-            "the re-traced rounds did not settle (the solution beyond its errors of their root): "
-            "read the error bars as lower bounds; raise proposal_rounds or spp"
+            "the re-traced rounds did not settle (still moving or still approaching their "
+            "root): read the error bars as lower bounds; raise proposal_rounds or spp"
         )
     warnings += _identifiability(problem, names, corr)
     warnings += _fit_quality(problem, out, names, tanh_idx, sd_log, r)

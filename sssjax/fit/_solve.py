@@ -199,10 +199,13 @@ def pooled_step(rounds, y) -> np.ndarray:
     steps run away by up to 6 in log on the skin slab; where the iteration settles is the
     root either way."""
     rounds = _aligned(rounds)
-    grad = sum(rd.contributions(y).sum(axis=0) for rd in rounds)
     M = sum(rd.gram() for rd in rounds)
-    M = M + 1e-12 * np.trace(M) * np.eye(M.shape[0])
-    return -np.linalg.solve(M, grad)
+    return -np.linalg.solve(M + 1e-12 * np.trace(M) * np.eye(M.shape[0]), _pooled_g(rounds, y))
+
+
+def _pooled_g(rounds, y) -> np.ndarray:
+    """The pooled estimating equation's value `sum_k g_k(y)` on aligned rounds."""
+    return sum(rd.contributions(y).sum(axis=0) for rd in rounds)
 
 
 def root_offset(rounds, y) -> np.ndarray:
@@ -212,8 +215,7 @@ def root_offset(rounds, y) -> np.ndarray:
     root within its errors; `pooled_step`'s damped step would also look small on a slow
     drift."""
     rounds = _aligned(rounds)
-    grad = sum(rd.contributions(y).sum(axis=0) for rd in rounds)
-    return -_slope_inverse(rounds) @ grad
+    return -_slope_inverse(rounds) @ _pooled_g(rounds, y)
 
 
 def pooled_covariance(rounds, y) -> tuple[np.ndarray, np.ndarray]:
@@ -413,10 +415,11 @@ SETTLE_MAX_SD = 0.1
 
 
 def _settled(dy, sd, tol: float) -> bool:
-    """Whether a re-traced round's step `dy` (log coefficients) is within its noise: every
-    component within `max(tol, sd)`, and every `sd` itself below `SETTLE_MAX_SD` (10 %): a
-    step whose error is larger than that is no evidence of having settled (an undetermined
-    coefficient would otherwise settle at once, anywhere)."""
+    """Whether a re-traced round's solution is settled: its offset `dy` from the pooled
+    root (log coefficients, `root_offset`) within `max(tol, sd)` in every component, and
+    every `sd` itself below `SETTLE_MAX_SD` (10 %): an offset whose error is larger than
+    that is no evidence of having settled (an undetermined coefficient would otherwise
+    settle at once, anywhere; `RoundsStop` says such a fit converged with wide bars)."""
     dy, sd = np.abs(np.asarray(dy)), np.asarray(sd)
     return bool(np.all(dy <= np.maximum(tol, sd)) and np.all(sd < SETTLE_MAX_SD))
 
@@ -547,9 +550,9 @@ def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = Fal
     relative weighting (`refit`), each round's weights come from the previous trace at
     the proposal (independent of its own noise). The rounds stop when, after two full steps
     in a row, the solution is within its standard errors (or `proposal_tol`) of the pooled
-    root (`root_offset`) and those errors are below
-    `SETTLE_MAX_SD`, or after `proposal_rounds` (`RoundsStop`, which also says whether the
-    fit converged). **Returns:** `Rounds`."""
+    root (`root_offset`) and those errors are below `SETTLE_MAX_SD`, or after
+    `proposal_rounds` (`RoundsStop`, which also says whether the fit converged).
+    **Returns:** `Rounds`."""
     opts = problem.options
     names = problem.names
     dt = jnp.float32 if jnp.asarray(y).dtype == jnp.float32 else jnp.float64
@@ -603,7 +606,7 @@ def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = Fal
         if frac < 1.0:
             start = k + 1  # still approaching: the rounds so far were linearised too far away
         off = root_offset(window, y)  # the distance to the root, not the damped step
-        if stop.after(off, sd, frac):  # two steps in a row within their noise
+        if stop.after(off, sd, frac):  # two rounds in a row settled at the root
             break
     bar.close()
     converged, message = stop.verdict(n_rounds)
