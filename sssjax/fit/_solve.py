@@ -80,7 +80,10 @@ def instruments(j: np.ndarray, pix: np.ndarray, shape: tuple) -> np.ndarray:
     A walk's derivative in a pixel is heavy-tailed (a long path's `n - sigma L` score), far
     noisier than the image: on the skin slab at 64 spp the signal was 1-25 % of a trace's
     `J^T J`. The image of a derivative is smooth, its noise is not, so smoothing keeps the
-    signal and averages the noise over about `4 pi INSTRUMENT_BLUR^2` pixels."""
+    signal and averages the noise over about `4 pi INSTRUMENT_BLUR^2` pixels. (Averaging
+    the earlier rounds' Jacobians in as well was tried, 2026-12-06: a pixel whose
+    derivative came out high then weighs alike in every round, and on the slab coverage
+    fits it gave |z| of 2.9 and 4.7.)"""
     from scipy.ndimage import gaussian_filter
 
     h, w = shape
@@ -118,15 +121,30 @@ class RoundLinearisation:
     r: np.ndarray
     t: np.ndarray
     pix: np.ndarray | None = None  # the rows' pixels (row 3 i + c: channel c of pix[i])
+    # (m, n) rows whose outer products estimate the noise share of `gram` (`noise_gram`),
+    # and each row's group of pixel blocks (`BLOCK`, `signal_grams`)
+    noise_rows: np.ndarray | None = None
+    groups: np.ndarray | None = None
 
     @classmethod
     def at(cls, residuals, y, args, pix, shape) -> RoundLinearisation:
         """The linearisation of `residuals` (decorrelated) at `y` on `args`' trace, whose
         rows cover the pixels `pix` of an image of `shape`."""
         j, r = _halves_jacobian(residuals, y, args)
-        j = np.asarray(j)
+        return cls.of(y, np.asarray(j), np.asarray(r), pix, shape)
+
+    @classmethod
+    def of(cls, y, j, r, pix, shape) -> RoundLinearisation:
+        """The linearisation of halves with Jacobians `j` `(2, m, n)` and residuals `r`
+        `(2, m)` at `y`, rows on the pixels `pix` of an image of `shape`: their instruments
+        (`instruments`) and the share of the instruments' Gram matrix that is their noise
+        (`noise_gram`)."""
         t = instruments(j, pix, shape).astype(j.dtype)
-        return cls(np.asarray(y, np.float64), j, np.asarray(r), t, np.asarray(pix))
+        # the mean instruments (A + B) / 2 have the noise of (A - B) / 2, which has no signal
+        noise = (0.5 * (t[0].astype(np.float64) - t[1])).astype(np.float32)
+        py, px = np.divmod(np.asarray(pix), shape[1])
+        groups = np.repeat((5 * (py // BLOCK) + px // BLOCK) % GROUPS, 3)
+        return cls(np.asarray(y, np.float64), j, r, t, np.asarray(pix), noise, groups)
 
     def on(self, pix: np.ndarray) -> RoundLinearisation:
         """This round's rows of the pixels `pix` (a subset of its own, in their order)."""
@@ -134,7 +152,13 @@ class RoundLinearisation:
         i = order[np.searchsorted(self.pix[order], pix)]
         rows = (3 * i[:, None] + np.arange(3)).reshape(-1)
         return RoundLinearisation(
-            self.y, self.j[:, rows], self.r[:, rows], self.t[:, rows], np.asarray(pix)
+            self.y,
+            self.j[:, rows],
+            self.r[:, rows],
+            self.t[:, rows],
+            np.asarray(pix),
+            None if self.noise_rows is None else self.noise_rows[rows],
+            None if self.groups is None else self.groups[rows],
         )
 
     def residuals(self, y) -> np.ndarray:
@@ -163,6 +187,35 @@ class RoundLinearisation:
         tbar = 0.5 * (self.t[0] + self.t[1]).astype(np.float64)
         return tbar.T @ tbar
 
+    @property
+    def noise_gram(self) -> np.ndarray | None:
+        """The estimated share of `gram` that is the instruments' noise (from the halves'
+        differences, which carry noise and no signal). None when unknown."""
+        if self.noise_rows is None:
+            return None
+        x = self.noise_rows.astype(np.float64)
+        return x.T @ x
+
+    def signal_gram(self) -> np.ndarray:
+        """`gram` less its estimated noise (`noise_gram`; none known: `gram` itself), an
+        unbiased estimate of the noise-free instruments' Gram matrix."""
+        return self.signal_grams().sum(axis=0)
+
+    def signal_grams(self) -> np.ndarray:
+        """`signal_gram` split over `GROUPS` groups of pixel blocks `(GROUPS, n, n)`:
+        nearly independent parts (the instruments' smoothing reaches a few pixels, the
+        blocks are `BLOCK` wide) whose scatter says how well the correction is known. Only
+        the first part when the rows have no groups."""
+        tbar = 0.5 * (self.t[0] + self.t[1]).astype(np.float64)
+        n = tbar.shape[1]
+        groups = np.zeros(tbar.shape[0], int) if self.groups is None else self.groups
+        out = np.zeros((GROUPS, n, n))
+        np.add.at(out, groups, tbar[:, :, None] * tbar[:, None, :])
+        if self.noise_rows is not None:
+            x = self.noise_rows.astype(np.float64)
+            np.add.at(out, groups, -x[:, :, None] * x[:, None, :])
+        return out
+
     def loss(self, y) -> float:
         """The cross loss `0.5 sum r_A r_B` at `y`, linearised."""
         ra, rb = self.residuals(y)
@@ -189,18 +242,48 @@ def _slope_inverse(rounds) -> np.ndarray:
         return np.linalg.pinv(B)
 
 
+# the pixel blocks (BLOCK x BLOCK, in GROUPS groups) over which the step's noise correction
+# is estimated apart, to judge how well it is known (`pooled_step`)
+BLOCK, GROUPS = 8, 8
+# the most the noise correction may lengthen the step over the plain Gram step, per direction
+MAX_STEP_GAIN = 4.0
+
+
 def pooled_step(rounds, y) -> np.ndarray:
     """A Gauss-Newton step at `y` towards the root of the rounds' pooled estimating
     equation `sum_k g_k(y) = 0` (`RoundLinearisation`; each round linearised at its own
     proposal): the rounds' walks together, as one trace of all their samples, without
-    re-tracing the old ones. The step's matrix is the instruments' own `sum_k Tbar_k^T
-    Tbar_k` (positive definite, and at least the slope `T^T J_0` where the instruments
-    keep noise: a shorter, stable step), not the slope itself, whose noise made single
-    steps run away by up to 6 in log on the skin slab; where the iteration settles is the
-    root either way."""
+    re-tracing the old ones.
+
+    The step's matrix is the instruments' Gram matrix less its estimated noise
+    (`signal_gram`), not the slope `T^T J`, whose noise (the raw Jacobian's) made single
+    steps run away by up to 6 in log on the skin slab. The plain Gram matrix `sum_k Tbar_k^T
+    Tbar_k` is inflated by the instruments' noise: on a 256 x 256 cube at 4 spp by 5-50x in
+    the `sigma_s` directions, so its steps covered 2-3 % of `sigma_s` per round. The
+    corrected matrix is taken in the basis where the Gram matrix is the identity, each
+    eigenvalue raised by two of its standard errors (the scatter of its estimates from
+    `GROUPS` groups of pixel blocks: on a small image the correction is not known well, and
+    taking it whole made the slab coverage fits wander) and clipped to `[1 / MAX_STEP_GAIN,
+    1]` (noise-free, it is at most the Gram matrix): a positive definite matrix, steps at
+    most `MAX_STEP_GAIN` times the plain ones in any direction. Where the iteration settles
+    is the root whatever the matrix."""
     rounds = _aligned(rounds)
     M = sum(rd.gram() for rd in rounds)
-    return -np.linalg.solve(M + 1e-12 * np.trace(M) * np.eye(M.shape[0]), _pooled_g(rounds, y))
+    parts = sum(rd.signal_grams() for rd in rounds)  # (GROUPS, n, n)
+    C = parts.sum(axis=0)
+    g = _pooled_g(rounds, y)
+    lam, U = np.linalg.eigh(0.5 * (M + M.T))
+    W = U / np.sqrt(np.maximum(lam, 1e-12 * max(np.max(lam), 1e-300)))  # W^T M W = 1
+    mu, V = np.linalg.eigh(W.T @ (0.5 * (C + C.T)) @ W)
+    # the correction only as far as the blocks agree on it: each eigenvalue raised by two
+    # of its standard errors (from the blocks' scatter), so a correction that the pixels
+    # cannot tell from noise leaves the plain Gram step
+    WV = W @ V
+    per = np.einsum("ia,gij,ja->ga", WV, parts, WV)  # (GROUPS, n): the blocks' shares
+    used = np.count_nonzero(np.any(parts != 0, axis=(1, 2)))
+    se = np.sqrt(max(used, 1) * np.var(per, axis=0, ddof=1)) if used > 1 else np.inf
+    mu = np.clip(mu + 2.0 * se, 1.0 / MAX_STEP_GAIN, 1.0)
+    return -WV @ ((WV.T @ g) / mu)
 
 
 def _pooled_g(rounds, y) -> np.ndarray:
@@ -467,6 +550,8 @@ class RoundsStop:
 MIN_EFFICIENCY = 0.3
 # the largest re-traced step (log coefficients): a shorter one when far from the solution
 MAX_ROUND_STEP = 0.5
+# the largest step of a coefficient the rounds cannot resolve (its step within its noise)
+NOISE_STEP = 0.1
 
 
 def channel_efficiency(problem: FitProblem, data: list[TraceData], media0, y) -> float:
@@ -490,15 +575,30 @@ def channel_efficiency(problem: FitProblem, data: list[TraceData], media0, y) ->
     return worst
 
 
-def _trusted_step(problem, data, args, y, dy, loss):
+def _trusted_step(problem, data, args, y, dy, loss, sd=None):
     """The longest of `dy`, `dy / 2`, `dy / 4`, ... (first capped at `MAX_ROUND_STEP`) that
     stays where the trace's re-weighting is trusted (`channel_efficiency` at least
     `MIN_EFFICIENCY`) and, unless `loss` is None, does not raise the decorrelated loss
     `loss(y)` (this trace's, an unbiased estimate of the noise-free loss): a Gauss-Newton
     step from far away overshoots, and a step past the trusted region lands on a
-    re-weighting whose noise is larger than the step. **Returns:** the step taken and its
-    fraction of `dy`."""
-    big = np.max(np.abs(dy))
+    re-weighting whose noise is larger than the step.
+
+    Components the rounds cannot resolve (standard error `sd` above `MAX_ROUND_STEP`, and
+    the step within two of them: noise, not a direction to go) are capped on their own at
+    `NOISE_STEP` and do not shorten the others: a coefficient the image barely shows
+    (marble's red `sigma_a` on a cube, +-60-200 %) steps +-1 in log from round to round,
+    and scaling the whole step by it held `sigma_s` to a third of its steps and restarted
+    the pool at every round. (Capping them at `MAX_ROUND_STEP` instead let them wander on
+    the slab coverage fits: red `sigma_s` +511 %.) **Returns:** the step taken and its
+    fraction of `dy` (of its resolved components)."""
+    dy = np.asarray(dy, np.float64)
+    if sd is None:
+        noise = np.zeros(dy.shape, bool)
+    else:
+        sd = np.asarray(sd)
+        noise = (np.abs(dy) <= 2.0 * sd) & (sd > MAX_ROUND_STEP)
+    dy = np.where(noise, np.clip(dy, -NOISE_STEP, NOISE_STEP), dy)
+    big = np.max(np.abs(np.where(noise, 0.0, dy)))
     t = min(1.0, MAX_ROUND_STEP / big) if big > 0 else 1.0
     base = None if loss is None else loss(y)
     for _ in range(8):
@@ -576,8 +676,10 @@ def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = Fal
                 "the traces cannot be split into independent halves (odd walkers per "
                 "pixel): use an even spp"
             )
-        lin = RoundLinearisation.at(residuals, y, args, row_pixels(data), problem.target.shape[:2])
-        pool = [(i, p) for i, p in pool + [(k, lin)] if i >= max(start, k // 2)]
+        keep = max(start, k // 2)  # the pool: the rounds since the approach, the later half
+        shape = problem.target.shape[:2]
+        lin = RoundLinearisation.at(residuals, y, args, row_pixels(data), shape)
+        pool = [(i, p) for i, p in pool + [(k, lin)] if i >= keep]
         window = [p for _, p in pool]
         dy = pooled_step(window, y)
         if not np.all(np.isfinite(dy)):
@@ -597,7 +699,8 @@ def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = Fal
                 return float(_cross_loss(residuals, yy, args))
         else:  # pooled: the step solves the rounds' equation, not this trace's loss
             cross = None
-        dy, frac = _trusted_step(problem, data, args, y, dy, cross)
+        sd0 = np.sqrt(np.clip(np.diag(pooled_covariance(window, y)[0]), 0, None))
+        dy, frac = _trusted_step(problem, data, args, y, dy, cross, sd0)
         y = y + jnp.asarray(dy, y.dtype)
         n_rounds = k + 1
         sd = np.sqrt(np.clip(np.diag(pooled_covariance(window, y)[0]), 0, None))
