@@ -50,14 +50,6 @@ def _loss(residuals, y, args):
     return 0.5 * jnp.sum(residuals(y, args) ** 2)
 
 
-def _floored_inverse(H):
-    """`H^-1` with `|eigenvalues|` floored: a cross-product Hessian is unbiased but noisy,
-    and directions a trace cannot tell apart may come out with small or negative curvature."""
-    lam, V = jnp.linalg.eigh(0.5 * (H + H.T))
-    lam = jnp.maximum(jnp.abs(lam), 1e-6 * jnp.max(jnp.abs(lam)))
-    return (V / lam) @ V.T
-
-
 # the width (pixels, Gaussian sigma) over which a round's Jacobian is smoothed into the
 # instruments of its estimating equation (`instruments`)
 INSTRUMENT_BLUR = 1.5
@@ -121,10 +113,7 @@ class RoundLinearisation:
     r: np.ndarray
     t: np.ndarray
     pix: np.ndarray | None = None  # the rows' pixels (row 3 i + c: channel c of pix[i])
-    # (m, n) rows whose outer products estimate the noise share of `gram` (`noise_gram`),
-    # and each row's group of pixel blocks (`BLOCK`, `signal_grams`)
-    noise_rows: np.ndarray | None = None
-    groups: np.ndarray | None = None
+    groups: np.ndarray | None = None  # each row's group of pixel blocks (`signal_grams`)
 
     @classmethod
     def at(cls, residuals, y, args, pix, shape) -> RoundLinearisation:
@@ -140,11 +129,9 @@ class RoundLinearisation:
         (`instruments`) and the share of the instruments' Gram matrix that is their noise
         (`noise_gram`)."""
         t = instruments(j, pix, shape).astype(j.dtype)
-        # the mean instruments (A + B) / 2 have the noise of (A - B) / 2, which has no signal
-        noise = (0.5 * (t[0].astype(np.float64) - t[1])).astype(np.float32)
         py, px = np.divmod(np.asarray(pix), shape[1])
         groups = np.repeat((5 * (py // BLOCK) + px // BLOCK) % GROUPS, 3)
-        return cls(np.asarray(y, np.float64), j, r, t, np.asarray(pix), noise, groups)
+        return cls(np.asarray(y, np.float64), j, r, t, np.asarray(pix), groups)
 
     def on(self, pix: np.ndarray) -> RoundLinearisation:
         """This round's rows of the pixels `pix` (a subset of its own, in their order)."""
@@ -157,7 +144,6 @@ class RoundLinearisation:
             self.r[:, rows],
             self.t[:, rows],
             np.asarray(pix),
-            None if self.noise_rows is None else self.noise_rows[rows],
             None if self.groups is None else self.groups[rows],
         )
 
@@ -187,33 +173,29 @@ class RoundLinearisation:
         tbar = 0.5 * (self.t[0] + self.t[1]).astype(np.float64)
         return tbar.T @ tbar
 
+    def _noise_rows(self) -> np.ndarray:
+        """Rows whose outer products estimate the noise share of `gram`: the mean
+        instruments `(A + B) / 2` have the noise of `(A - B) / 2`, which has no signal."""
+        return 0.5 * (self.t[0].astype(np.float64) - self.t[1])
+
     @property
-    def noise_gram(self) -> np.ndarray | None:
-        """The estimated share of `gram` that is the instruments' noise (from the halves'
-        differences, which carry noise and no signal). None when unknown."""
-        if self.noise_rows is None:
-            return None
-        x = self.noise_rows.astype(np.float64)
+    def noise_gram(self) -> np.ndarray:
+        """The estimated share of `gram` that is the instruments' noise."""
+        x = self._noise_rows()
         return x.T @ x
 
-    def signal_gram(self) -> np.ndarray:
-        """`gram` less its estimated noise (`noise_gram`; none known: `gram` itself), an
-        unbiased estimate of the noise-free instruments' Gram matrix."""
-        return self.signal_grams().sum(axis=0)
-
     def signal_grams(self) -> np.ndarray:
-        """`signal_gram` split over `GROUPS` groups of pixel blocks `(GROUPS, n, n)`:
-        nearly independent parts (the instruments' smoothing reaches a few pixels, the
-        blocks are `BLOCK` wide) whose scatter says how well the correction is known. Only
-        the first part when the rows have no groups."""
+        """`gram` less `noise_gram`, an unbiased estimate of the noise-free instruments'
+        Gram matrix, split over `GROUPS` groups of pixel blocks `(GROUPS, n, n)`: nearly
+        independent parts (the instruments' smoothing reaches a few pixels, the blocks are
+        `BLOCK` wide) whose scatter says how well the correction is known. All in the first
+        part when the rows have no groups."""
         tbar = 0.5 * (self.t[0] + self.t[1]).astype(np.float64)
+        x = self._noise_rows()
         n = tbar.shape[1]
         groups = np.zeros(tbar.shape[0], int) if self.groups is None else self.groups
         out = np.zeros((GROUPS, n, n))
-        np.add.at(out, groups, tbar[:, :, None] * tbar[:, None, :])
-        if self.noise_rows is not None:
-            x = self.noise_rows.astype(np.float64)
-            np.add.at(out, groups, -x[:, :, None] * x[:, None, :])
+        np.add.at(out, groups, tbar[:, :, None] * tbar[:, None, :] - x[:, :, None] * x[:, None, :])
         return out
 
     def loss(self, y) -> float:
@@ -256,7 +238,7 @@ def pooled_step(rounds, y) -> np.ndarray:
     re-tracing the old ones.
 
     The step's matrix is the instruments' Gram matrix less its estimated noise
-    (`signal_gram`), not the slope `T^T J`, whose noise (the raw Jacobian's) made single
+    (`signal_grams`), not the slope `T^T J`, whose noise (the raw Jacobian's) made single
     steps run away by up to 6 in log on the skin slab. The plain Gram matrix `sum_k Tbar_k^T
     Tbar_k` is inflated by the instruments' noise: on a 256 x 256 cube at 4 spp by 5-50x in
     the `sigma_s` directions, so its steps covered 2-3 % of `sigma_s` per round. The
@@ -676,10 +658,8 @@ def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = Fal
                 "the traces cannot be split into independent halves (odd walkers per "
                 "pixel): use an even spp"
             )
-        keep = max(start, k // 2)  # the pool: the rounds since the approach, the later half
-        shape = problem.target.shape[:2]
-        lin = RoundLinearisation.at(residuals, y, args, row_pixels(data), shape)
-        pool = [(i, p) for i, p in pool + [(k, lin)] if i >= keep]
+        lin = RoundLinearisation.at(residuals, y, args, row_pixels(data), problem.target.shape[:2])
+        pool = [(i, p) for i, p in pool + [(k, lin)] if i >= max(start, k // 2)]
         window = [p for _, p in pool]
         dy = pooled_step(window, y)
         if not np.all(np.isfinite(dy)):
