@@ -47,6 +47,7 @@ _SOLVER = {
     "refine": _bool,
     "proposal_rounds": _nonneg_int,
     "proposal_tol": _pos,
+    "instruments": _str,
 }
 _SYNTHETIC = {"seed": _nonneg_int, "transport": _str, "spp": _pos_int}
 

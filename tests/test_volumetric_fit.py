@@ -265,16 +265,18 @@ def test_root_offset_is_the_distance_to_the_pooled_root_where_the_step_is_damped
     assert np.linalg.norm(step) < 0.5 * np.linalg.norm(off)  # damped: noise in the Gram
 
 
-def _image_rounds(rng, J0, e, pix, shape, K, jsd=3.0):
+def _image_rounds(rng, J0, e, pix, shape, K, jsd=3.0, t=None):
     """`K` rounds at `y = 0` of a linear model with Jacobian `J0` `(m, n)` on the pixels
     `pix` of an image of `shape`: heavy-tailed Jacobian noise (`jsd` x Student t, 3 dof)
-    and residual noise per half, `e` the shared target's."""
+    and residual noise per half, `e` the shared target's; instruments `t` `(m, n)` for
+    both halves (default: the halves' smoothed Jacobians)."""
     rounds = []
     m, n = J0.shape
     for _ in range(K):
         j = J0 + jsd * rng.standard_t(3, size=(2, m, n))
         r = e + 0.3 * rng.normal(size=(2, m))
-        rounds.append(_solve.RoundLinearisation.of(np.zeros(n), j, r, pix, shape))
+        tt = None if t is None else np.stack([t, t])
+        rounds.append(_solve.RoundLinearisation.of(np.zeros(n), j, r, pix, shape, tt))
     return rounds
 
 
@@ -348,3 +350,80 @@ def test_noise_corrected_root_is_unbiased_and_its_covariance_honest(x64):
     assert np.all(np.abs(roots.mean(axis=0)) < 4 * sd / np.sqrt(len(roots))), (roots.mean(0), sd)
     ratio = np.var(roots, axis=0) / np.mean(var, axis=0)
     assert np.all((ratio > 0.75) & (ratio < 1.33)), ratio
+
+
+def test_fixed_mismatched_instruments_keep_the_root_unbiased_and_the_covariance_honest(x64):
+    """Instruments that are noise-free but not the exact Jacobian (the diffusion
+    transport's: 10-30 % off in level, not quite its shape), here `J0` scaled per column
+    by 0.75-1.3 and distorted, with heavy-tailed walks' derivative noise: iterating the
+    pooled step reaches the root, the roots average to the truth, the sandwich covariance
+    matches their scatter, and the roots are tighter than with the walks' own smoothed
+    instruments on the same rounds."""
+    shape = (16, 16)
+    pix = np.arange(shape[0] * shape[1])
+    J0 = _smooth_jacobian(shape)
+    T = J0 @ np.array([[0.75, 0.1, 0.0], [0.0, 1.3, 0.0], [0.05, 0.0, 1.0]])
+    T = T * (1.0 + 0.2 * np.cos(np.arange(J0.shape[0]) / 7.0))[:, None]
+    roots, var, plain = [], [], []
+    for seed in range(300):
+        rng = np.random.default_rng(100 + seed)
+        e = 0.3 * rng.normal(size=J0.shape[0])
+        state = rng.bit_generator.state
+        for t, out in ((T, roots), (None, plain)):
+            rng.bit_generator.state = state  # the same walks for both instruments
+            rounds = _image_rounds(rng, J0, e, pix, shape, 4, jsd=1.0, t=t)
+            if t is None:  # the root of a linear equation: one Newton step from anywhere
+                out.append(_solve.root_offset(rounds, np.zeros(3)))
+                continue
+            y = np.zeros(3)
+            for _ in range(12):
+                y = y + _solve.pooled_step(rounds, y)
+            np.testing.assert_allclose(_solve.root_offset(rounds, y), 0.0, atol=1e-3)
+            out.append(y)
+            var.append(np.diag(_solve.pooled_covariance(rounds, y)[0]))
+    roots, plain = np.asarray(roots), np.asarray(plain)
+    sd = np.sqrt(np.mean(var, axis=0))
+    assert np.all(np.abs(roots.mean(axis=0)) < 4 * sd / np.sqrt(len(roots))), (roots.mean(0), sd)
+    ratio = np.var(roots, axis=0) / np.mean(var, axis=0)
+    assert np.all((ratio > 0.75) & (ratio < 1.33)), ratio
+    assert np.all(np.std(roots, axis=0) < np.std(plain, axis=0)), (roots.std(0), plain.std(0))
+
+
+def test_diffusion_instruments_are_the_diffusion_images_derivative(x64):
+    """`DiffusionInstruments.at` against central differences of the diffusion
+    transport's image of the same scene (its own trace), on rows in another order than
+    its own and with weights: the rows map to the right pixels, in the rounds' units; a
+    pixel the diffusion image does not cover gets zero rows."""
+    import jax.numpy as jnp
+
+    from sssjax.fit._options import FitOptions
+    from sssjax.fit._problem import FitProblem, model, row_pixels
+
+    scene = _slab(SIGMA_A, SIGMA_S, n=8, spp=2)
+    target = np.asarray(sssjax.render(scene, 3))
+    opts = FitOptions()
+    problem = FitProblem.build(scene, target, ["sigma_a", "sigma_s"], None, None, 0, opts, False)
+    data, _ = problem.traced([problem.key])
+    instr = _solve.DiffusionInstruments(problem, jnp.float64)
+    assert instr.problem.scene.sss.transport == "diffusion"
+    pix = row_pixels(data)[::-1][:20]
+    pix = np.append(pix, -1)  # no such pixel
+    rng = np.random.default_rng(0)
+    w = rng.uniform(0.5, 2.0, size=3 * pix.size)
+    y = jnp.asarray(problem.y0, jnp.float64)
+    T = instr.at(y, pix, w, 0.5)
+    own = list(instr.pix)
+    h = 1e-5
+    fd = np.zeros((3 * pix.size, y.size))
+    for c in range(y.size):
+        e = jnp.zeros(y.size).at[c].set(h)
+        d = model(instr.problem.layout, y + e, instr.args) - model(
+            instr.problem.layout, y - e, instr.args
+        )
+        d = np.asarray(d).reshape(-1, 3) / (2 * h) * float(instr.args.scale) / 0.5
+        for i, p in enumerate(pix):
+            if p in own:
+                fd[3 * i : 3 * i + 3, c] = d[own.index(p)]
+    fd = fd * w[:, None]
+    np.testing.assert_allclose(T, fd, rtol=1e-5, atol=1e-9 * np.abs(fd).max())
+    assert np.all(T[-3:] == 0) and np.abs(T[:-3]).max() > 0

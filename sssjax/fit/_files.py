@@ -56,7 +56,7 @@ def load_fit_file(path: str | Path) -> FitJob:
     `sss_cloud_size`, ...), `[solver]` (`method` lm|gn|bfgs, `seed`, and the other
     `FitOptions`: `max_steps`, `rtol`, `atol`, `loss` l2|cauchy|huber, `loss_scale`,
     `weighting` absolute|relative, `rel_floor`, `traces`, `refine`, `proposal_rounds`,
-    `proposal_tol`), `output` (folder).
+    `proposal_tol`, `instruments` diffusion|smoothed), `output` (folder).
     """
     path = Path(path)
     d = read_toml(path, FitError, "fit file")

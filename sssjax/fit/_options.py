@@ -68,6 +68,16 @@ class Weighting:
     refit: bool = False
 
 
+# a re-weighting transport's rounds: where their estimating equation's instruments come from
+# (`sssjax.fit._solve.RoundLinearisation`)
+INSTRUMENTS = Registry(
+    "instruments",
+    {
+        "diffusion": "the diffusion transport's exact Jacobian of the same scene",
+        "smoothed": "the walks' own Jacobian, smoothed over the image",
+    },
+)
+
 WEIGHTINGS = Registry(
     "weighting",
     {
@@ -103,6 +113,12 @@ class FitOptions:
       many times at most the fit re-traces with its solution as the walks' proposal (at
       least 1 there), and the floor (relative, in every coefficient) on the error within
       which the solution counts as at the rounds' root: it stops early there.
+    - `instruments`: with a re-weighting transport, what the rounds' estimating equation
+      weighs each pixel's residual by: `"diffusion"` (default), the diffusion transport's
+      exact Jacobian of the same scene, free of the walks' noise; or `"smoothed"`, the
+      walks' own Jacobian smoothed over 1.5 pixels (noisy at a few spp; for scenes whose
+      diffusion image does not depend on a fitted coefficient). Either keeps the fit's
+      root unbiased; the better they match the exact Jacobian, the faster and tighter.
     """
 
     solver: str = "lm"
@@ -117,6 +133,7 @@ class FitOptions:
     refine: bool = False
     proposal_rounds: int = 8
     proposal_tol: float = 0.02
+    instruments: str = "diffusion"
 
     def __post_init__(self):
         if not (isinstance(self.traces, int) and self.traces >= 1):
@@ -132,6 +149,7 @@ class FitOptions:
         if not self.rel_floor > 0:
             raise FitError(f"rel_floor must be > 0, got {self.rel_floor}")
         SOLVERS.check(self.solver, FitError)
+        INSTRUMENTS.check(self.instruments, FitError)
 
     @classmethod
     def of(cls, options: FitOptions | None = None, **values: Any) -> FitOptions:
