@@ -341,9 +341,7 @@ def pooled_step(rounds, y) -> np.ndarray:
     # of its standard errors (from the blocks' scatter), so a correction that the pixels
     # cannot tell from noise leaves the plain Gram step
     WV = W @ V
-    per = np.einsum("ia,gij,ja->ga", WV, parts, WV)  # (GROUPS, n): the blocks' shares
-    used = np.count_nonzero(np.any(parts != 0, axis=(1, 2)))
-    se = np.sqrt(max(used, 1) * np.var(per, axis=0, ddof=1)) if used > 1 else np.inf
+    se = _block_se(parts, WV)
     mu = np.clip(mu + 2.0 * se, 1.0 / MAX_STEP_GAIN, 1.0)
     step_w = -V @ ((WV.T @ g) / mu)  # in the basis where the Gram matrix is the identity
     return W @ _shortened(rounds, W, step_w)
@@ -359,12 +357,19 @@ def _shortened(rounds, W, step_w) -> np.ndarray:
     parts = sum(rd.slope_parts() for rd in rounds)  # (GROUPS, n, n)
     K = W.T @ parts.sum(axis=0) @ W
     kappa, Q = np.linalg.eigh(0.5 * (K + K.T))
-    WQ = W @ Q
-    per = np.einsum("ia,gij,ja->ga", WQ, parts, WQ)
-    used = np.count_nonzero(np.any(parts != 0, axis=(1, 2)))
-    se = np.sqrt(max(used, 1) * np.var(per, axis=0, ddof=1)) if used > 1 else np.inf
+    se = _block_se(parts, W @ Q)
     div = np.maximum(kappa - 2.0 * se, 1.0)
     return Q @ ((Q.T @ step_w) / div)
+
+
+def _block_se(parts, basis) -> np.ndarray:
+    """The standard error of each diagonal element of `basis^T (sum parts) basis`, from
+    the scatter of the pixel-block groups' shares `parts` `(GROUPS, n, n)` (inf with one)."""
+    per = np.einsum("ia,gij,ja->ga", basis, parts, basis)  # (GROUPS, n): the blocks' shares
+    used = np.count_nonzero(np.any(parts != 0, axis=(1, 2)))
+    return (
+        np.sqrt(used * np.var(per, axis=0, ddof=1)) if used > 1 else np.full(per.shape[1], np.inf)
+    )
 
 
 def _pooled_g(rounds, y) -> np.ndarray:
