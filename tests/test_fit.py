@@ -569,5 +569,9 @@ def test_retraced_rounds_settle_only_on_determined_steps():
     assert _settled([0.01, -0.03], [0.02, 0.04], tol=0.02)
     assert not _settled([0.01, -0.06], [0.02, 0.04], tol=0.02)  # a step beyond its error
     assert _settled([0.015, 0.0], [0.001, 0.001], tol=0.02)  # within the tolerance
-    assert not _settled([0.3, 0.0], [2.0, 0.01], tol=0.02)  # "within" an error of 200 %
+    assert not _settled([0.3, 0.0], [0.4, 0.01], tol=0.02)  # "within" an error of 40 %
+    assert not _settled([0.3], [2.0], tol=0.02)  # nothing determined: nothing settled
+    # a coefficient beyond UNDETERMINED_SD is left out (the report names it as not determined)
+    assert _settled([3.0, 0.0], [2.0, 0.01], tol=0.02)
+    assert not _settled([3.0, 0.05], [2.0, 0.01], tol=0.02)
     assert not _settled([0.0, 0.0], [SETTLE_MAX_SD, 0.01], tol=0.02)

@@ -237,6 +237,28 @@ def test_rounds_stop_tells_settled_at_the_root_and_drifting_apart(steps, converg
         assert n == 3  # stopped as soon as two steps in a row settled
 
 
+@pytest.mark.parametrize(
+    "offsets, sd, converged, message",
+    [
+        # two determined coefficients at the root, a third (bar 200 %) wandering by 3 in log
+        ([(0.01, -0.02, 3.0), (0.02, 0.01, -2.5)], 0.05, True, "1 coefficient not determined"),
+        # the same with wide determined bars (30 %): at the root, the undetermined left out
+        ([(0.2, -0.1, 3.0), (0.1, 0.2, -2.5)], 0.3, True, "at the root"),
+        # a determined coefficient beyond its error: still moving, whatever the third does
+        ([(0.01, -0.02, 0.0), (0.2, 0.01, 0.0)], 0.05, False, "did not settle"),
+    ],
+)
+def test_rounds_stop_leaves_undetermined_coefficients_out(offsets, sd, converged, message):
+    """The stopping rule judges the coefficients the target determines: one whose error
+    is beyond `UNDETERMINED_SD` (the ketchup sphere's green and blue channels) does not keep
+    the rounds "not settled", and the verdict says it was left out."""
+    stop = _solve.RoundsStop(tol=1e-3)
+    for off in offsets:
+        stop.after(np.array(off), np.array([sd, sd, 2.0]), 1.0)
+    ok, msg = stop.verdict(len(offsets))
+    assert ok is converged and message in msg, (ok, msg)
+
+
 def test_root_offset_is_the_distance_to_the_pooled_root_where_the_step_is_damped(x64):
     """Rounds of a linear model with noisy instruments: `root_offset` is the exact distance
     to the root of the pooled equation (its slope is exact for a linear model), while the

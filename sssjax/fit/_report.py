@@ -11,7 +11,7 @@ import numpy as np
 
 from ._problem import FitProblem, residual_args, residual_fn
 from ._result import FitResult
-from ._solve import Outcome, jacobian, loss_at
+from ._solve import UNDETERMINED_SD, Outcome, jacobian, loss_at
 
 __all__ = ["report"]
 
@@ -124,7 +124,11 @@ def _fit_quality(problem: FitProblem, out: Outcome, names, tanh_idx, sd_log, r) 
                 "brighter than the scene allows); check the target's exposure and outliers "
                 "(loss='cauchy', or free the exposure)"
             )
-    vague = [n for n, sd in zip(names, sd_log, strict=True) if not sd < 0.5 and n != "exposure"]
+    vague = [
+        n
+        for n, sd in zip(names, sd_log, strict=True)
+        if not sd < UNDETERMINED_SD and n != "exposure"
+    ]
     if vague:
         warnings.append(
             f"{', '.join(vague)}: not determined by this target (error bar beyond +-50%): "

@@ -581,16 +581,42 @@ def search_eta(problem: FitProblem, keys, y0):
 
 # a step's standard error (log coefficients) beyond which "within its error" means nothing
 SETTLE_MAX_SD = 0.1
+# a standard error (log coefficients) beyond which a coefficient is not determined by the
+# target (`FitResult` warns so, naming it): its wandering does not keep the rounds going
+UNDETERMINED_SD = 0.5
+
+
+def _determined(sd) -> np.ndarray:
+    """Which coefficients the rounds judge: those whose standard error is below
+    `UNDETERMINED_SD` (the others are reported as not determined, whatever they do)."""
+    return np.asarray(sd) < UNDETERMINED_SD
 
 
 def _settled(dy, sd, tol: float) -> bool:
     """Whether a re-traced round's solution is settled: its offset `dy` from the pooled
-    root (log coefficients, `root_offset`) within `max(tol, sd)` in every component, and
-    every `sd` itself below `SETTLE_MAX_SD` (10 %): an offset whose error is larger than
-    that is no evidence of having settled (an undetermined coefficient would otherwise
-    settle at once, anywhere; `RoundsStop` says such a fit converged with wide bars)."""
+    root (log coefficients, `root_offset`) within `max(tol, sd)` in every determined
+    component (`_determined`; at least one), and every such `sd` itself below
+    `SETTLE_MAX_SD` (10 %): an offset whose error is larger than that is no evidence of
+    having settled (an undetermined coefficient would otherwise settle at once, anywhere;
+    `RoundsStop` says such a fit converged with wide bars). The coefficients beyond
+    `UNDETERMINED_SD` are left out: a ketchup sphere's green and blue channels (albedo
+    0.07 and 0.02, bars of 60-400 %) wandered by more than their errors round after round
+    and kept its well-determined red channel "not settled" (measured 2026-12-07)."""
     dy, sd = np.abs(np.asarray(dy)), np.asarray(sd)
-    return bool(np.all(dy <= np.maximum(tol, sd)) and np.all(sd < SETTLE_MAX_SD))
+    det = _determined(sd)
+    return bool(
+        det.any()
+        and np.all(dy[det] <= np.maximum(tol, sd[det]))
+        and np.all(sd[det] < SETTLE_MAX_SD)
+    )
+
+
+def _within(dy, sd, tol: float) -> bool:
+    """Whether every determined component of the offset `dy` is within `max(tol, sd)`
+    (at least one determined), whatever the size of `sd`."""
+    dy, sd = np.abs(np.asarray(dy)), np.asarray(sd)
+    det = _determined(sd)
+    return bool(det.any() and np.all(dy[det] <= np.maximum(tol, sd[det])))
 
 
 @dataclasses.dataclass
@@ -607,27 +633,36 @@ class RoundsStop:
     covariance is that root's (wide bars, not understated ones). Otherwise the rounds were
     still moving. The offset, not the step taken: `pooled_step` is damped where the
     instruments keep noise, and a slow drift of small steps (+0.03 in log per round on a
-    256 x 256 cube at 4 spp, ending 24 % short at z -5.6) would look settled."""
+    256 x 256 cube at 4 spp, ending 24 % short at z -5.6) would look settled. Coefficients
+    not determined (`_determined`) are left out of both counts; the verdict says how many."""
 
     tol: float
     settled: int = 0
     at_root: int = 0
+    undetermined: int = 0
 
     def after(self, off, sd, frac: float) -> bool:
         full = frac == 1.0
+        self.undetermined = int(np.count_nonzero(~_determined(sd)))
         self.settled = self.settled + 1 if full and _settled(off, sd, self.tol) else 0
-        within = full and bool(np.all(np.abs(off) <= np.maximum(self.tol, np.asarray(sd))))
+        within = full and _within(off, sd, self.tol)
         self.at_root = self.at_root + 1 if within else 0
         return self.settled >= 2
 
     def verdict(self, rounds: int) -> tuple[bool, str]:
         """**Returns:** `(converged, message)` after `rounds` rounds."""
+        left = (
+            f"; {self.undetermined} coefficient{'s' if self.undetermined > 1 else ''} not "
+            "determined, left out"
+            if self.undetermined
+            else ""
+        )
         if self.settled >= 2:
-            return True, "converged (within its errors of the pooled rounds' root)"
+            return True, f"converged (within its errors of the pooled rounds' root{left})"
         if self.at_root >= 2:
             return True, (
                 f"converged at the root of the pooled rounds ({rounds} rounds, within its "
-                f"errors of the root, some of these above {SETTLE_MAX_SD:.0%})"
+                f"errors of the root, some of these above {SETTLE_MAX_SD:.0%}{left})"
             )
         return False, f"the re-traced rounds did not settle within {rounds} rounds"
 
