@@ -287,6 +287,37 @@ def test_root_offset_is_the_distance_to_the_pooled_root_where_the_step_is_damped
     assert np.linalg.norm(step) < 0.5 * np.linalg.norm(off)  # damped: noise in the Gram
 
 
+def test_to_root_lands_on_the_pooled_root_in_the_determined_coefficients(x64):
+    """Rounds of a linear model: `to_root` jumps exactly onto the pooled equation's root
+    (where it vanishes), holds a coefficient that is not determined and solves the others
+    with it held, and does not jump from further than `ROOT_JUMP_SD` standard errors."""
+    rng = np.random.default_rng(8)
+    m, n = 400, 3
+    J = rng.normal(size=(m, n))
+    rounds = []
+    for _ in range(3):
+        yk = 0.05 * rng.normal(size=n)
+        t = [J + 2.0 * rng.normal(size=(m, n)) for _ in range(2)]
+        c = 0.02 * rng.normal(size=(2, m))
+        rounds.append(_round(yk, [J, J], c + J @ yk, np.stack(t)))
+    y = np.zeros(n)
+    g = lambda yy: sum(rd.contributions(yy).sum(axis=0) for rd in rounds)  # noqa: E731
+    off = _solve.root_offset(rounds, y)
+    sd = np.full(n, 0.05)
+    jump = _solve.to_root(rounds, y, np.maximum(sd, np.abs(off)), tol=1e-3)
+    np.testing.assert_allclose(jump, off, atol=1e-12)
+    assert np.max(np.abs(g(y + jump))) < 1e-9 * np.max(np.abs(g(y)))
+    # the third not determined: held, the first two solved with it held (g_0 = g_1 = 0)
+    wide = np.maximum(sd, np.abs(off))
+    wide[2] = 2 * _solve.UNDETERMINED_SD
+    jump = _solve.to_root(rounds, y, wide, tol=1e-3)
+    assert jump[2] == 0.0 and np.any(jump[:2] != 0)
+    assert np.max(np.abs(g(y + jump)[:2])) < 1e-9 * np.max(np.abs(g(y)))
+    # further than ROOT_JUMP_SD errors: no jump (the rounds are still moving)
+    tight = np.abs(off) / (2 * _solve.ROOT_JUMP_SD)
+    assert np.all(_solve.to_root(rounds, y, tight, tol=1e-6) == 0.0)
+
+
 def _image_rounds(rng, J0, e, pix, shape, K, jsd=3.0, t=None):
     """`K` rounds at `y = 0` of a linear model with Jacobian `J0` `(m, n)` on the pixels
     `pix` of an image of `shape`: heavy-tailed Jacobian noise (`jsd` x Student t, 3 dof)
