@@ -617,8 +617,8 @@ def _cube_walk_reference(sigma_a, sigma_s, eta, half, width, n, seed):
     walk (flights of `sigma_s`, specular Fresnel splits and total internal reflection at the
     faces, chosen by probability) until it leaves. **Returns:** `(mean, standard error)`."""
     rng = np.random.default_rng(seed)
-    x = np.stack([rng.uniform(-width / 2, width / 2, n), np.full(n, half), np.zeros(n)], 1)
-    x[:, 2] = rng.uniform(-width / 2, width / 2, n)
+    u, w = rng.uniform(-width / 2, width / 2, (2, n))
+    x = np.stack([u, np.full(n, half), w], 1)
     d = np.tile([0.0, -1.0, 0.0], (n, 1))
     length, score, alive = np.zeros(n), np.zeros(n), np.ones(n, bool)
     while alive.any():

@@ -289,9 +289,14 @@ def _aligned(rounds) -> list:
     return [rd.on(common) for rd in rounds]
 
 
+def _pooled_slope(rounds) -> np.ndarray:
+    """The pooled slope `B = sum_k dg_k / dy` of aligned rounds."""
+    return sum(rd.slope() for rd in rounds)
+
+
 def _slope_inverse(rounds) -> np.ndarray:
     """The inverse of the pooled slope `sum_k dg_k / dy` (pseudo-inverse where singular)."""
-    B = sum(rd.slope() for rd in rounds)
+    B = _pooled_slope(rounds)
     try:
         return np.linalg.inv(B)
     except np.linalg.LinAlgError:
@@ -411,7 +416,7 @@ def to_root(rounds, y, sd, tol: float) -> np.ndarray:
     jump = np.zeros(np.asarray(y).size)
     if det.size == 0:
         return jump
-    B = sum(rd.slope() for rd in rounds)
+    B = _pooled_slope(rounds)
     g = _pooled_g(rounds, y)
     try:
         jd = -np.linalg.solve(B[np.ix_(det, det)], g[det])
@@ -640,13 +645,8 @@ def _settled(dy, sd, tol: float) -> bool:
     `UNDETERMINED_SD` are left out: a ketchup sphere's green and blue channels (albedo
     0.07 and 0.02, bars of 60-400 %) wandered by more than their errors round after round
     and kept its well-determined red channel "not settled" (measured 2026-12-07)."""
-    dy, sd = np.abs(np.asarray(dy)), np.asarray(sd)
-    det = _determined(sd)
-    return bool(
-        det.any()
-        and np.all(dy[det] <= np.maximum(tol, sd[det]))
-        and np.all(sd[det] < SETTLE_MAX_SD)
-    )
+    sd = np.asarray(sd)
+    return _within(dy, sd, tol) and bool(np.all(sd[_determined(sd)] < SETTLE_MAX_SD))
 
 
 def _within(dy, sd, tol: float) -> bool:
