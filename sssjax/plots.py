@@ -114,15 +114,20 @@ def convergence_plot(
     loss = [max(h["loss"], 1e-30) for h in history]
     params = np.array([h["params"] for h in history])
     fig, ax = plt.subplots(1, 3 if eta_search else 2, figsize=(16 if eta_search else 11, 4))
+    rounds = bool(history) and history[-1].get("root", False)  # a volumetric fit's rounds
+    xlabel = "point traced (0: the start; last: the pooled root)" if rounds else "step"
     ax[0].semilogy(steps, loss, "o-")
-    ax[0].set_xlabel("step")
-    ax[0].set_ylabel("loss (0.5 sum r^2)")
+    if rounds:
+        ax[0].semilogy(steps[-1:], loss[-1:], "*", ms=14, color="C3", label="root (the answer)")
+        ax[0].legend(fontsize=7)
+    ax[0].set_xlabel(xlabel)
+    ax[0].set_ylabel("loss (0.5 sum r_A r_B of the halves)" if rounds else "loss (0.5 sum r^2)")
     ax[0].grid(True, which="both", alpha=0.3)
     for i, n in enumerate(names[: params.shape[1]]):  # eta is not a solver coordinate
         c = _RGB["RGB".index(n[-1])] if n[-1] in "RGB" else None
         ls = "-" if ".sigma_a." in n else "--"
         ax[1].plot(steps, params[:, i] / params[-1, i], ls, color=c, label=n)
-    ax[1].set_xlabel("step")
+    ax[1].set_xlabel(xlabel)
     ax[1].set_ylabel("parameter / final value")
     ax[1].grid(True, alpha=0.3)
     ax[1].legend(fontsize=7)

@@ -509,3 +509,20 @@ def test_pooled_step_converges_where_the_instruments_are_four_times_too_shallow(
     g = exact[0].contributions(np.zeros(3)).sum(axis=0)
     gram_step = -np.linalg.solve(exact[0].gram(), g)
     np.testing.assert_allclose(_solve.pooled_step(exact, np.zeros(3)), gram_step, rtol=1e-9)
+
+
+def test_history_holds_the_traced_points_then_the_root_the_result_reports():
+    """The history's points are where the rounds traced (the first at the start), each with
+    its trace's cross loss, and its last point is the answer: the pooled root, at the
+    summary's `loss_final`, not the last step's end (they differ by the jump onto it)."""
+    start = _slab([1.5 * a for a in SIGMA_A], [0.7 * s for s in SIGMA_S], n=12, spp=8)
+    target = np.asarray(sssjax.render(_slab(SIGMA_A, SIGMA_S, n=12, spp=8), 3))
+    res = sssjax.fit(start, target, params=["sigma_a", "sigma_s"], seed=4, proposal_rounds=3)
+    h = res.history
+    assert len(h) == res.steps + 1 and [e["step"] for e in h] == list(range(len(h)))
+    assert [e.get("root", False) for e in h] == [False] * res.steps + [True]
+    m = start.media()["m"]
+    np.testing.assert_allclose(h[0]["params"], [*m.sigma_a, *m.sigma_s], rtol=1e-6)
+    np.testing.assert_allclose(h[-1]["params"], [res.values[n] for n in res.names], rtol=1e-6)
+    assert h[0]["loss"] == pytest.approx(res.loss_initial, rel=1e-6)
+    assert h[-1]["loss"] == pytest.approx(res.loss_final, rel=1e-5)

@@ -29,7 +29,10 @@ class FitResult:
     `correlation`: parameter correlation matrix (order of `names`).
     `loss_initial`, `loss_final`: `0.5 sum r^2` at the start and the solution, on the last
     trace; for a re-weighting (volumetric) fit `0.5 sum r_A r_B` of its two halves, which
-    carries no model variance.
+    carries no model variance, on the first round's trace (at the start) and on the last
+    (at the solution).
+    `history`: per step `{"step", "loss", "params"}`; a volumetric fit's entries are the
+    points its rounds traced, then the solution (`"root": True`, the pooled rounds' root).
     """
 
     names: list[str]

@@ -499,12 +499,18 @@ def jacobian(problem: FitProblem, y, args: Args):
     return _jac_res(residual_fn(problem.layout, problem.options.loss), y, args)
 
 
-def _progress_line(bar, step: int, loss: float, names: list[str], vals: np.ndarray) -> None:
-    """A step on the bar (a terminal) or as a line of its own (a file or pipe)."""
+def _shown(loss: float, names: list[str], vals: np.ndarray) -> str:
     # the material name is dropped (one material in most fits); a light keeps its prefix
     short = [n if n.startswith("lights.") else n.split(".", 1)[-1] for n in names]
     shown = "  ".join(f"{n}={v:.4g}" for n, v in zip(short, vals, strict=True))
-    bar.update(step, line=f"step {step:3d}  loss {loss:.6g}  {shown}", loss=loss)
+    return f"loss {loss:.6g}  {shown}"
+
+
+def _progress_line(
+    bar, step: int, loss: float, names: list[str], vals: np.ndarray, what: str = "step"
+) -> None:
+    """A step on the bar (a terminal) or as a line of its own (a file or pipe)."""
+    bar.update(step, line=f"{what} {step:3d}  {_shown(loss, names, vals)}", loss=loss)
 
 
 def solve(
@@ -847,12 +853,13 @@ def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = Fal
                 "the re-traced Gauss-Newton step is not finite (a trace with no signal in "
                 "the fitted pixels?): check the target and the mask"
             )
-        loss = 0.5 * float(np.sum(np.mean(lin.r, axis=0, dtype=np.float64) ** 2))
-        if loss0 is None:
-            loss0 = loss
-            history.append(
-                {"step": len(history), "loss": loss, "params": problem.values(y).tolist()}
-            )
+        # the halves' cross loss at the point this round traced: it carries no model
+        # variance, so the rounds' losses compare (their plain loss swings with the walks'
+        # noise) and the last one is the summary's `loss_final` (`_report`)
+        loss = 0.5 * float(np.sum(np.prod(lin.r, axis=0, dtype=np.float64)))
+        loss0 = loss if loss0 is None else loss0
+        history.append({"step": len(history), "loss": loss, "params": problem.values(y).tolist()})
+        _progress_line(bar, k + 1, loss, names, problem.values(y), "round")
         if len(window) == 1:  # approaching: this trace's own (not linearised) cross loss
 
             def cross(yy, args=args):
@@ -864,17 +871,22 @@ def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = Fal
         y = y + jnp.asarray(dy, y.dtype)
         n_rounds = k + 1
         sd = np.sqrt(np.clip(np.diag(pooled_covariance(window, y)[0]), 0, None))
-        history.append({"step": len(history), "loss": loss, "params": problem.values(y).tolist()})
-        _progress_line(bar, k + 1, loss, names, problem.values(y))
         if frac < 1.0:
             start = k + 1  # still approaching: the rounds so far were linearised too far away
         off = root_offset(window, y)  # the distance to the root, not the damped step
         if stop.after(off, sd, frac):  # two rounds in a row settled at the root
             break
-    bar.close()
     converged, message = stop.verdict(n_rounds)
     # the answer is the pooled root the covariance below describes, not the last step's end
     y = y + jnp.asarray(to_root(window, y, sd, opts.proposal_tol), y.dtype)
+    # its loss on the last trace (re-weighted there: the root is within a step of it), the
+    # history's last point and the summary's `loss_final`
+    loss = float(_cross_loss(residuals, y, args))
+    history.append(
+        {"step": len(history), "loss": loss, "params": problem.values(y).tolist(), "root": True}
+    )
+    bar.write(f"root       {_shown(loss, names, problem.values(y))}")
+    bar.close()
     # the solution's covariance from the rounds whose step found it (as the stopping rule
     # judged it). Not the last round alone after a shortened final step: at 4 spp on a
     # 256 x 256 cube one round's bars were 10-562 %, where its pool's were 5-40 %
