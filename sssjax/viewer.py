@@ -13,7 +13,7 @@ real time:
 
 The GUI panel holds "Use this view" (the browser's camera becomes the render camera, with
 its field of view and aspect ratio), the render settings (height in pixels, spp, light
-samples, SSS on/off), "Render" (progressive passes with a progress bar; the image appears in
+samples, SSS on/off, the transport: diffusion or volumetric), "Render" (progressive passes with a progress bar; the image appears in
 the panel and on the render camera's image plane in 3D), "Save" (image and a scene file with
 the chosen camera, never overwriting a file), the surfaces' opacity, and the ray tree of one
 pixel (picked by x/y fields or by clicking the rendered image in 3D), drawn as segments
@@ -38,6 +38,7 @@ import numpy as np
 
 from .raytree import COLORS as _RT_COLORS
 from .scene import Camera, Scene, dump_scene, load_scene
+from .transport import TRANSPORTS
 
 __all__ = [
     "Previewer",
@@ -211,7 +212,7 @@ def camera_from_view(
 
 def scene_toml(scene: Scene, camera: Camera, **render: Any) -> str:
     """The scene file of `scene` with `camera` as its camera and some `[render]` / `[sss]`
-    fields replaced (`spp=`, `light_samples=`, `seed=`, `sss_enabled=`).
+    fields replaced (`spp=`, `light_samples=`, `seed=`, `sss_enabled=`, `sss_transport=`).
 
     Written by `dump_scene`: quad meshes read from OBJ files by their absolute paths, so the
     file loads from any folder.
@@ -247,7 +248,7 @@ class Previewer:
     p = Previewer("scenes/marble_cube.toml", port=0).start()
     print(p.url)
     p.use_view(client.camera)  # or any object with position, look_at, up_direction, fov, aspect
-    image = p.render()         # with the GUI's spp, light samples, SSS switch
+    image = p.render()         # with the GUI's spp, light samples, SSS switch, transport
     p.save("out/view")         # out/view.png, .exr, .toml (or out/view_1.*, ...)
     p.stop()
     ```
@@ -464,6 +465,12 @@ class Previewer:
                 "Light samples", self.scene.render.light_samples, min=1, max=256, step=1
             )
             c["sss"] = gui.add_checkbox("SSS", self.scene.sss.enabled)
+            c["transport"] = gui.add_dropdown(
+                "Transport",
+                TRANSPORTS.names,
+                initial_value=self.scene.sss.transport,
+                hint="diffusion: the dipole family, fast; volumetric: exact random walks",
+            )
             c["render"] = gui.add_button("Render")
             c["progress"] = gui.add_progress_bar(0.0)
             c["status"] = gui.add_markdown(self._camera_text())
@@ -580,14 +587,15 @@ class Previewer:
             else self.scene.render.light_samples
         )
         sss = bool(c["sss"].value) if "sss" in c else self.scene.sss.enabled
+        transport = str(c["transport"].value) if "transport" in c else self.scene.sss.transport
         if spp < 1 or ls < 1:
             raise ValueError(f"spp and light samples must be >= 1, got {spp} and {ls}")
-        key = (spp, ls, sss)
+        key = (spp, ls, sss, transport)
         hit = self._render_cache is not None and self._render_cache[0] == key
         if not hit or self._render_cache[3] is not self.camera:
             per_pass = max(d for d in (1, 2, 4) if spp % d == 0)
             sc = self.scene.replace(camera=self.camera).with_settings(
-                spp=per_pass, light_samples=ls, sss_enabled=sss
+                spp=per_pass, light_samples=ls, sss_enabled=sss, sss_transport=transport
             )
             self._render_cache = (key, sc, spp // per_pass, self.camera)
         return self._render_cache[1]
@@ -761,6 +769,7 @@ class Previewer:
             spp=int(self.image_meta.get("spp", scene.render.spp)),
             light_samples=int(scene.render.light_samples),
             sss_enabled=bool(scene.sss.enabled),
+            sss_transport=scene.sss.transport,
         )
         # atomic, and failing rather than replacing a file that appeared meanwhile
         write_text(paths["toml"], text, overwrite=False)

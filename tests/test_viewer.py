@@ -294,6 +294,28 @@ def test_render_and_save_never_overwrites(cube, tmp_path):
     assert save_paths(tmp_path / "mine")["toml"].name == "mine_1.toml"
 
 
+def test_transport_dropdown_renders_traces_and_saves_the_volumetric_walks(cube, tmp_path):
+    """The panel's transport: "volumetric" renders the cube's random walks (a pixel's ray
+    tree holds walk segments and recomputes its rendered radiance), and the saved scene
+    file keeps the transport, so `sssjax render` of it renders what the panel showed."""
+    view = FakeView((60.0, 40.0, 90.0), (0.0, 8.0, 0.0), (0.0, 1.0, 0.0), math.radians(30.0), 1.0)
+    cube.use_view(view, height=8)
+    c = cube.controls
+    assert c["transport"].value == "diffusion"  # the scene's
+    c["spp"].value, c["light_samples"].value, c["sss"].value = 2, 1, True
+    c["transport"].value = "volumetric"
+    assert cube.render_scene().sss.transport == "volumetric"
+    image = cube.render()
+    assert np.all(np.isfinite(image)) and image[3, 4].mean() > 0.01  # the cube's top
+    tree = cube.show_raytree((4, 3))
+    assert tree.counts()["walk"] > 0
+    np.testing.assert_allclose(tree.radiance, image[3, 4], rtol=2e-3, atol=1e-5)
+    saved = load_scene(cube.save(tmp_path / "walks")["toml"])
+    assert saved.sss.transport == "volumetric" and saved.render.spp == 2
+    c["transport"].value = "diffusion"
+    assert cube.render_scene().sss.transport == "diffusion"
+
+
 def test_opacity_slider(prims):
     prims.controls["opacity"].value = 0.3  # as the browser's slider does
     for m in scene_meshes(prims.scene, prims.resolution):
