@@ -253,23 +253,22 @@ class RoundLinearisation:
         part when the rows have no groups."""
         tbar = 0.5 * (self.t[0] + self.t[1]).astype(np.float64)
         x = self._noise_rows()
-        n = tbar.shape[1]
-        groups = np.zeros(tbar.shape[0], int) if self.groups is None else self.groups
-        out = np.zeros((GROUPS, n, n))
-        np.add.at(out, groups, tbar[:, :, None] * tbar[:, None, :] - x[:, :, None] * x[:, None, :])
-        return out
+        return self._by_group(tbar[:, :, None] * tbar[:, None, :] - x[:, :, None] * x[:, None, :])
 
     def slope_parts(self) -> np.ndarray:
         """`slope` split over the `GROUPS` groups of pixel blocks `(GROUPS, n, n)`, as
         `signal_grams` is (all in the first part when the rows have no groups)."""
         ja, jb = self.j.astype(np.float64)
         ta, tb = self.t.astype(np.float64)
-        n = ta.shape[1]
-        groups = np.zeros(ta.shape[0], int) if self.groups is None else self.groups
-        out = np.zeros((GROUPS, n, n))
-        np.add.at(
-            out, groups, 0.5 * (ta[:, :, None] * jb[:, None, :] + tb[:, :, None] * ja[:, None, :])
+        return self._by_group(
+            0.5 * (ta[:, :, None] * jb[:, None, :] + tb[:, :, None] * ja[:, None, :])
         )
+
+    def _by_group(self, rows: np.ndarray) -> np.ndarray:
+        """Per-row matrices `(m, n, n)` summed over each row's group: `(GROUPS, n, n)`."""
+        groups = np.zeros(rows.shape[0], int) if self.groups is None else self.groups
+        out = np.zeros((GROUPS, *rows.shape[1:]))
+        np.add.at(out, groups, rows)
         return out
 
     def loss(self, y) -> float:
