@@ -685,7 +685,8 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
 
     **Arguments:**
 
-    - `source`: a path to a TOML scene file, or the same structure as a Python dict.
+    - `source`: a path to a TOML scene file, or the same structure as a Python dict (its
+      numbers may be NumPy or JAX scalars and arrays).
     - `base_dir`: folder against which relative OBJ paths resolve (default: the file's folder,
       or the working directory for a dict).
 
@@ -694,7 +695,8 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
     from . import shapes
 
     if isinstance(source, Mapping):
-        file, data = "<dict>", dict(source)
+        # NumPy / JAX values as Python numbers and lists, as a TOML file would give them
+        file, data = "<dict>", _plain(dict(source))
         base = Path(base_dir) if base_dir is not None else Path.cwd()
     else:
         path = Path(source)
@@ -849,6 +851,8 @@ def _plain(v: Any) -> Any:
         return v.item()
     if isinstance(v, list | tuple):
         return [_plain(x) for x in v]
+    if isinstance(v, Mapping):
+        return {k: _plain(x) for k, x in v.items()}
     return v
 
 

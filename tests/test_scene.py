@@ -71,6 +71,28 @@ def test_dict_scene_and_defaults():
     assert scene.translucent_materials == ["m"]
 
 
+def test_dict_scene_takes_numpy_and_jax_numbers():
+    """A scene dict built from arrays (a fit's result, a parameter sweep) loads as its plain
+    numbers would, and its values are still validated."""
+    import jax.numpy as jnp
+
+    def scene(sigma_a, radius):
+        return {
+            "camera": {"origin": np.array([0.0, 0.0, 10.0]), "target": [0, 0, 0], "width": 8},
+            "materials": {"m": {"type": "translucent", "sigma_a": sigma_a, "sigma_s": 1.0}},
+            "shapes": [{"type": "sphere", "material": "m", "radius": radius}],
+        }
+
+    sc = load_scene(scene(np.float32([0.0021, 0.0041, 0.0071]), jnp.float32(1.5)))
+    np.testing.assert_allclose(sc.media()["m"].sigma_a, [0.0021, 0.0041, 0.0071], rtol=1e-7)
+    assert sc.camera.width == 8 and sc.source["shapes"][0]["radius"] == 1.5
+    assert load_scene(scene([np.float64(0.1)] * 3, 1)).media()["m"].sigma_a[0] == 0.1
+    with pytest.raises(SceneError, match=r"sigma_a: must be >= 0, got \[0.1, -0.2, 0.3\]"):
+        load_scene(scene(np.array([0.1, -0.2, 0.3]), 1.0))
+    with pytest.raises(SceneError, match="radius: must be finite, got nan"):
+        load_scene(scene(0.1, np.float32("nan")))
+
+
 def test_sigmap_s_and_g_in_scene():
     scene = load_scene(
         {
