@@ -375,6 +375,13 @@ class FitProblem:
                     'measure it on a flat sample with transport = "diffusion" and profile = '
                     '"tabulated"'
                 )
+            if scene.render.spp % 2:
+                # checked before the target is rendered and traced, not after
+                raise FitError(
+                    f"spp = {scene.render.spp}: a fit with the {scene.sss.transport} "
+                    "transport splits each pixel's walks into two independent halves: use "
+                    "an even spp"
+                )
             if options.proposal_rounds < 1:
                 raise FitError(
                     f"proposal_rounds must be >= 1 with the {scene.sss.transport} transport "
