@@ -41,6 +41,13 @@ def table() -> dict[str, np.ndarray]:
         return {k: z[k] for k in z.files}
 
 
+def eta_range() -> tuple[float, float]:
+    """The relative indices of refraction the table covers (beyond them it is held at its
+    edge, an approximation)."""
+    eta = table()["eta"]
+    return float(eta.min()), float(eta.max())
+
+
 def _axis(v, nodes):
     """Indices `(..., 4)` and Catmull-Rom weights `(..., 4)` of `v` on uniform `nodes`
     (clamped to the grid)."""

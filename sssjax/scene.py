@@ -817,6 +817,22 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
 
     if not shape_list:
         raise SceneError(f"{file}: [[shapes]]: the scene has no shapes (add a [[shapes]] table)")
+    if sss.profile == "tabulated" and sss.transport == "diffusion":
+        from ._tabulated import eta_range
+
+        lo, hi = eta_range()
+        used = {s.material for s in shape_list}
+        for name, m in materials.items():
+            eta = None if m.medium is None or name not in used else float(m.medium.eta)
+            if eta is not None and not lo <= eta <= hi:
+                warnings.warn(
+                    f"{file}: [materials.{name}] eta = {eta:g} is outside the tabulated "
+                    f"profile's range {lo:.1f}-{hi:.1f}: the profile there is its value at "
+                    f"eta = {min(max(eta, lo), hi):g} (not exact); use profile = "
+                    '"better_dipole" or transport = "volumetric"',
+                    SceneWarning,
+                    stacklevel=2,
+                )
     if not lights or not any(np.any(_emission(lt) > 0) for lt in lights):
         warnings.warn(
             f"{file}: "

@@ -215,4 +215,11 @@ def test_measure_cli_errors(tmp_path, capsys):
         assert main([*argv, "-o", str(tmp_path / "o")]) == 2, argv
         err = capsys.readouterr().err
         assert msg in err and err.count("\n") == 1, err
+    # beyond the table's eta the tabulated profile is held at its edge: said, not silent
+    argv = ["measure", str(plain), "--pixel-size", "0.1", "--eta", "1.8", "--r-min", "5"]
+    assert main([*argv, "--model", "tabulated", "-o", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "warning: --eta 1.8 is outside the tabulated profile's range 1.0-1.6" in err, err
+    assert main([*argv, "--model", "better_dipole", "-o", str(tmp_path / "o")]) == 2
+    assert "outside the tabulated" not in capsys.readouterr().err
     assert not (tmp_path / "o").exists()

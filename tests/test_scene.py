@@ -93,6 +93,33 @@ def test_dict_scene_takes_numpy_and_jax_numbers():
         load_scene(scene(0.1, np.float32("nan")))
 
 
+def test_tabulated_profile_beyond_its_eta_range_warns():
+    """The table covers eta 1.0-1.6; beyond it the diffusion transport holds the profile at
+    its edge, which a scene must say (the volumetric transport and other profiles do not
+    use the table)."""
+    from sssjax.scene import SceneWarning
+
+    def scene(eta, **sss):
+        return {
+            "camera": {"origin": [0, 0, 10], "target": [0, 0, 0]},
+            "sss": sss,
+            "materials": {"m": {"type": "translucent", "preset": "marble", "eta": eta}},
+            "shapes": [{"type": "sphere", "material": "m", "radius": 1.0}],
+            "lights": [{"type": "point", "position": [0, 5, 5], "intensity": 1.0}],
+        }
+
+    msg = r"\[materials.m\] eta = 1.8 is outside the tabulated profile's range 1.0-1.6"
+    with pytest.warns(SceneWarning, match=msg):
+        load_scene(scene(1.8, profile="tabulated"))
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_scene(scene(1.5, profile="tabulated"))
+        load_scene(scene(1.8, profile="better_dipole"))
+        load_scene(scene(1.8, profile="tabulated", transport="volumetric"))
+
+
 def test_sigmap_s_and_g_in_scene():
     scene = load_scene(
         {
