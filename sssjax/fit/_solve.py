@@ -854,7 +854,7 @@ def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = Fal
             )
         # the halves' cross loss at the point this round traced: it carries no model
         # variance, so the rounds' losses compare (their plain loss swings with the walks'
-        # noise) and the last one is the summary's `loss_final` (`_report`)
+        # noise), and the first one is the summary's `loss_initial` (`_report`)
         loss = 0.5 * float(np.sum(np.prod(lin.r, axis=0, dtype=np.float64)))
         loss0 = loss if loss0 is None else loss0
         history.append({"step": len(history), "loss": loss, "params": problem.values(y).tolist()})
