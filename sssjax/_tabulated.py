@@ -48,6 +48,18 @@ def eta_range() -> tuple[float, float]:
     return float(eta.min()), float(eta.max())
 
 
+def eta_outside(eta: float) -> str | None:
+    """What a user must be told when `eta` is beyond the table (None within it): the
+    profile there is the table's value at its edge, not exact."""
+    lo, hi = eta_range()
+    if lo <= eta <= hi:
+        return None
+    return (
+        f"{eta:g} is outside the tabulated profile's range {lo:.1f}-{hi:.1f}: the profile "
+        f"there is its value at eta = {min(max(eta, lo), hi):g} (not exact)"
+    )
+
+
 def _axis(v, nodes):
     """Indices `(..., 4)` and Catmull-Rom weights `(..., 4)` of `v` on uniform `nodes`
     (clamped to the grid)."""

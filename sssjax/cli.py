@@ -329,16 +329,10 @@ def _cmd_measure(args: argparse.Namespace) -> int:
     # exact transport for a photograph; a diffusion render is fitted with its own profile
     model = args.model or (meta.get("profile", "dipole") if diffusion_render else "tabulated")
     if model == "tabulated":
-        from ._tabulated import eta_range
+        from ._tabulated import eta_outside
 
-        lo, hi = eta_range()
-        if not lo <= eta <= hi:
-            warnings.warn(
-                f"--eta {eta:g} is outside the tabulated profile's range {lo:.1f}-{hi:.1f}: the "
-                f"fit uses its value at eta = {min(max(eta, lo), hi):g} (not exact); "
-                "--model better_dipole has no such limit",
-                stacklevel=1,
-            )
+        if note := eta_outside(eta):
+            warnings.warn(f"--eta {note}; --model better_dipole has no such limit", stacklevel=1)
     r_min = args.r_min
     if r_min is None:
         r_min = 2.0 * pixel if orders == "all" else 1.0

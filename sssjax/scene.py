@@ -696,7 +696,7 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
 
     if isinstance(source, Mapping):
         # NumPy / JAX values as Python numbers and lists, as a TOML file would give them
-        file, data = "<dict>", _plain(dict(source))
+        file, data = "<dict>", _plain(source)
         base = Path(base_dir) if base_dir is not None else Path.cwd()
     else:
         path = Path(source)
@@ -818,17 +818,13 @@ def load_scene(source: str | Path | Mapping, *, base_dir: str | Path | None = No
     if not shape_list:
         raise SceneError(f"{file}: [[shapes]]: the scene has no shapes (add a [[shapes]] table)")
     if sss.profile == "tabulated" and sss.transport == "diffusion":
-        from ._tabulated import eta_range
+        from ._tabulated import eta_outside
 
-        lo, hi = eta_range()
         used = {s.material for s in shape_list}
         for name, m in materials.items():
-            eta = None if m.medium is None or name not in used else float(m.medium.eta)
-            if eta is not None and not lo <= eta <= hi:
+            if name in used and m.medium is not None and (note := eta_outside(m.medium.eta)):
                 warnings.warn(
-                    f"{file}: [materials.{name}] eta = {eta:g} is outside the tabulated "
-                    f"profile's range {lo:.1f}-{hi:.1f}: the profile there is its value at "
-                    f"eta = {min(max(eta, lo), hi):g} (not exact); use profile = "
+                    f"{file}: [materials.{name}] eta = {note}; use profile = "
                     '"better_dipole" or transport = "volumetric"',
                     SceneWarning,
                     stacklevel=2,

@@ -13,11 +13,11 @@ real time:
 
 The GUI panel holds "Use this view" (the browser's camera becomes the render camera, with
 its field of view and aspect ratio), the render settings (height in pixels, spp, light
-samples, SSS on/off, the transport: diffusion or volumetric), "Render" (progressive passes with a progress bar; the image appears in
-the panel and on the render camera's image plane in 3D), "Save" (image and a scene file with
-the chosen camera, never overwriting a file), the surfaces' opacity, and the ray tree of one
-pixel (picked by x/y fields or by clicking the rendered image in 3D), drawn as segments
-coloured by kind with a toggle per kind.
+samples, SSS on/off, the transport: diffusion or volumetric), "Render" (progressive passes
+with a progress bar; the image appears in the panel and on the render camera's image plane
+in 3D), "Save" (image and a scene file with the chosen camera, never overwriting a file),
+the surfaces' opacity, and the ray tree of one pixel (picked by x/y fields or by clicking
+the rendered image in 3D), drawn as segments coloured by kind with a toggle per kind.
 
 Everything the buttons do is a method of `Previewer`, so it runs without a browser.
 """

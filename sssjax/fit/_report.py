@@ -224,11 +224,10 @@ def report(problem: FitProblem, out: Outcome, t_start: float) -> FitResult:
     # an unidentified parameter has an infinite error bar (not 0 x inf = nan)
     stderr = np.where(np.isfinite(sd_log), dval * np.where(np.isfinite(sd_log), sd_log, 0), np.inf)
     dec = problem.reweighted  # the loss without the model's variance
-    if dec:  # the first round's, traced at the start itself (the last trace re-weighted
-        # that far from its proposal is noisier)
-        steps, loss_initial = run.steps, run.loss0
-    else:
-        steps, loss_initial = run.steps, loss_at(problem, problem.y0, run.args)
+    # a re-weighted fit: the first round's, traced at the start itself (the last trace
+    # re-weighted that far from its proposal is noisier)
+    steps = run.steps
+    loss_initial = run.loss0 if dec else loss_at(problem, problem.y0, run.args)
     if out.eta is not None:
         steps += sum(t["steps"] for t in out.eta_search)
         loss_initial = out.eta_loss0  # at the initial eta, not the fitted one
