@@ -48,6 +48,10 @@ def eta_range() -> tuple[float, float]:
     return float(eta.min()), float(eta.max())
 
 
+class EtaRangeWarning(UserWarning):
+    """The tabulated profile was asked for an `eta` beyond its table (`eta_outside`)."""
+
+
 def eta_outside(eta: float) -> str | None:
     """What a user must be told when `eta` is beyond the table (None within it): the
     profile there is the table's value at its edge, not exact."""

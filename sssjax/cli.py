@@ -275,6 +275,7 @@ def _cmd_measure(args: argparse.Namespace) -> int:
     import json
 
     from ._files import check_outputs, write_text
+    from ._tabulated import EtaRangeWarning
     from .imageio import read_image, read_metadata
     from .measure import find_center, fit_profile, image_to_reflectance, radial_profile
     from .plots import measurement_plot
@@ -331,6 +332,7 @@ def _cmd_measure(args: argparse.Namespace) -> int:
     if model == "tabulated":
         from ._tabulated import eta_outside
 
+        # said here, before the annuli are checked; `fit_profile`'s own warning is then muted
         if note := eta_outside(eta):
             warnings.warn(f"--eta {note}; --model better_dipole has no such limit", stacklevel=1)
     r_min = args.r_min
@@ -350,7 +352,9 @@ def _cmd_measure(args: argparse.Namespace) -> int:
         + ("free intensity scale" if free else f"beam power {np.ravel(power).tolist()} W")
     )
     _identifiability(prof, eta, r_min, orders)
-    res = fit_profile(prof, eta, r_min=r_min, free_scale=free, model=model, orders=orders)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", EtaRangeWarning)
+        res = fit_profile(prof, eta, r_min=r_min, free_scale=free, model=model, orders=orders)
     print(f"{'ch':<3} {'sigma_a [1/mm]':>22} {'sigmap_s [1/mm]':>22} {'scale':>16}  steps")
     for c in range(3):
         sc = f"{res.scale[c]:.4g} +- {res.scale_stderr[c]:.2g}" if free else "1 (known)"

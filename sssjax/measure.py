@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 
 import equinox as eqx
 import jax
@@ -25,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ._tabulated import EtaRangeWarning, eta_outside
 from .profiles import (
     Rd,
     check_profile,
@@ -152,6 +154,12 @@ def fit_profile(
     """
     check_profile(model)
     check_orders(orders)
+    if model == "tabulated" and (note := eta_outside(eta)):
+        warnings.warn(
+            f"fit_profile: eta {note}; model 'better_dipole' has no such limit",
+            EtaRangeWarning,
+            stacklevel=2,
+        )
     sel = (profile.r >= r_min) & np.all(profile.mean > 0, axis=1)
     # rows padded to a multiple of 32 (weight 0): the compiled solver is shared by profiles
     # of similar length instead of recompiled for each

@@ -269,3 +269,41 @@ def test_renderer_uses_the_tabulated_profile():
         profiles.Rd(prof.r[far, None], m.sigma_a, m.sigmap_s, float(m.eta), "tabulated")
     )
     np.testing.assert_allclose(prof.mean[far], want, rtol=0.1)
+
+
+def test_eta_beyond_the_table_is_said_by_every_entry():
+    """Beyond eta 1.0-1.6 the tabulated profile is its value at the table's edge: `fit_profile`
+    says so (a Python caller sees it, not only `sssjax measure`), and a renderer fit whose eta
+    search ended beyond the table says so in its warnings."""
+    import types
+    import warnings
+
+    from sssjax._tabulated import EtaRangeWarning
+    from sssjax.fit._report import _fit_quality
+    from sssjax.measure import Profile, fit_profile
+
+    r = np.linspace(1.0, 10.0, 24)
+    mean = np.stack([0.01 * np.exp(-r)] * 3, axis=1)
+    prof = Profile(r=r, mean=mean, stderr=0.01 * mean, counts=np.full(r.size, 10))
+    with pytest.warns(EtaRangeWarning, match="fit_profile: eta 1.8 is outside the tabulated"):
+        fit_profile(prof, 1.8, model="tabulated", init=(0.01, 1.0), max_steps=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit_profile(prof, 1.5, model="tabulated", init=(0.01, 1.0), max_steps=2)
+        fit_profile(prof, 1.8, model="better_dipole", init=(0.01, 1.0), max_steps=2)
+
+    def said(eta, profile="tabulated", transport="diffusion"):
+        sss = types.SimpleNamespace(profile=profile, transport=transport)
+        problem = types.SimpleNamespace(
+            scene=types.SimpleNamespace(sss=sss), eta=types.SimpleNamespace(name="m.eta")
+        )
+        run = types.SimpleNamespace(converged=True)
+        out = types.SimpleNamespace(eta=eta, eta_bounds=(1.2, 1.8), run=run)
+        found = _fit_quality(problem, out, ["m.eta"], [False], [0.01], np.ones(3))
+        return [w for w in found if "outside the tabulated" in w]
+
+    assert said(1.72) == [
+        "m.eta = 1.72 is outside the tabulated profile's range 1.0-1.6: the profile there is "
+        "its value at eta = 1.6 (not exact); fix eta, or use another profile"
+    ]
+    assert said(1.55) == [] and said(1.72, "pbd") == [] and said(1.72, transport="volumetric") == []

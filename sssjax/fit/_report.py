@@ -114,6 +114,12 @@ def _fit_quality(problem: FitProblem, out: Outcome, names, tanh_idx, sd_log, r) 
             f"{problem.eta.name} = {out.eta:.4f} is at the edge of the searched range "
             f"{lo:.3f}..{hi:.3f}: start nearer, or fix eta"
         )
+    sss = problem.scene.sss
+    if out.eta is not None and sss.profile == "tabulated" and sss.transport == "diffusion":
+        from .._tabulated import eta_outside
+
+        if note := eta_outside(out.eta):  # the search may leave the table (eta_init +- 0.3)
+            warnings.append(f"{problem.eta.name} = {note}; fix eta, or use another profile")
     if not run.converged:
         moved = np.abs(np.asarray(run.y - problem.y0, dtype=np.float64)) > np.log(10.0)
         far = [n for n, m, t in zip(names, moved, tanh_idx, strict=False) if m and not t]
