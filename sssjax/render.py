@@ -229,12 +229,16 @@ class Renderer:
         etas: Mapping | None = None,
         gain=None,
         proposal: Mapping | None = None,
+        keep=None,
     ):
         """The `Transport` of the whole image; `etas` overrides translucent materials'
         refractive index by name (geometry: it bends rays) and `gain` multiplies each
         light's emission (one factor per light, scene order), without recompiling.
         `proposal` (media by material name) replaces the media a re-weighting transport
-        samples its walks with (`TransportMethod.reweighted`; the others ignore it)."""
+        samples its walks with (`TransportMethod.reweighted`; the others ignore it).
+        `keep` (flat boolean per image pixel; one-phase transports) gives these pixels
+        terms rows even where no sample reached a medium (zero terms): a fit's rows then
+        do not depend on where this trace's samples happened to land."""
         key = as_key(key, self.scene)
         tm = self.transport
         arrays = self.arrays_for(etas, gain)
@@ -252,7 +256,7 @@ class Renderer:
             if not tm.media_dependent:
                 pass
             elif not tm.two_phase:
-                sel = np.flatnonzero(needs)
+                sel = np.flatnonzero(needs if keep is None else needs | keep[pix])
                 rows_all.append(offset + sel)
                 parts.append(rows.rows(sel))
             else:
