@@ -292,6 +292,11 @@ def _cmd_measure(args: argparse.Namespace) -> int:
         raise UserError(f"{path}: the image has NaN or infinite pixels")
     if not np.any(image > 0):
         raise UserError(f"{path}: the image is all black")
+    if "transport" in meta and not meta.get("beams"):  # an sssjax render, and not of a beam
+        raise UserError(
+            f"{path}: rendered by sssjax with no beam light: sssjax measure fits the radial "
+            'profile around a pencil beam on a flat sample ([[lights]] type = "beam")'
+        )
     pixel = args.pixel_size if args.pixel_size is not None else meta.get("pixel_size_mm")
     if pixel is None:
         raise UserError(f"{path}: no pixel size in the image metadata: give --pixel-size MM")

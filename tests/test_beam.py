@@ -203,7 +203,11 @@ def test_measure_cli_errors(tmp_path, capsys):
     img[16, 16] = 1.0
     img[10:22, 10:22] += 1e-3
     plain = write_image(tmp_path / "plain.exr", img)
+    # what sssjax writes with a render of a scene lit by anything but a beam
+    lit = {"transport": "volumetric", "profile": "dipole", "pixel_size_mm": 0.1}
+    area = write_image(tmp_path / "area.exr", img, metadata=lit)
     cases = [
+        (["measure", str(area)], "rendered by sssjax with no beam light: sssjax measure fits"),
         (["measure", str(tmp_path / "nope.exr")], "image not found"),
         (["measure", str(black), "--pixel-size", "0.1"], "all black"),
         (["measure", str(plain)], "no pixel size in the image metadata: give --pixel-size"),
