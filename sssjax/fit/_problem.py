@@ -87,7 +87,9 @@ def light_groups(n_lights: int, free_lights: Sequence[int]) -> list[np.ndarray |
     free light (only that light emitting), then one with the other lights (absent when
     every light is free); `[None]` (the scene as it is) when no light is free. Every light
     stays in the scene, dark or not, so rays, samples and random numbers are the scene's and
-    each trace is exactly its lights' share."""
+    each trace is exactly its lights' share (the volumetric transport's in expectation: its
+    next-event estimation picks a light by its power, gain included, so the groups' walks
+    differ)."""
     if not free_lights:
         return [None]
     rest = [i for i in range(n_lights) if i not in free_lights]
@@ -153,6 +155,13 @@ def trace_data(
         keep = np.zeros(tgt.shape[0] * tgt.shape[1], dtype=bool)
         keep[np.asarray(fixed)] = True
     transports = [renderer.trace(key, progress, etas, g, proposal, keep) for g in gains]
+    sets = [np.asarray(t.translucent_pixels()) for t in transports]
+    if any(not np.array_equal(np.sort(p), np.sort(sets[0])) for p in sets[1:]):
+        # a walk that reaches only one group's light has terms in that group alone: trace
+        # them again keeping the union, so that every group has rows for the same pixels
+        keep = np.zeros(tgt.shape[0] * tgt.shape[1], dtype=bool) if keep is None else keep
+        keep[np.concatenate(sets)] = True
+        transports = [renderer.trace(key, progress, etas, g, proposal, keep) for g in gains]
     transport = transports[0]
     pix = np.asarray(transport.translucent_pixels())
     rows = np.asarray(transport.t_rows)
@@ -171,9 +180,8 @@ def trace_data(
         if len(pix) == 0:
             raise FitError("no pixel sees a translucent object: nothing to fit")
         rows_sel = np.arange(len(pix))
-    sel = jnp.asarray(rows_sel)
     return TraceData(
-        terms=[t.terms.rows(sel) for t in transports],
+        terms=[t.terms.rows(_rows_of(t, pix[rows_sel])) for t in transports],
         target=tgt.reshape(-1, 3)[pix[rows_sel]],
         base=np.stack([np.asarray(t.base)[rows[rows_sel]] for t in transports]),
         materials=transport.materials,
@@ -181,6 +189,17 @@ def trace_data(
         pix=pix[rows_sel],
         all_pix=pix,
     )
+
+
+def _rows_of(transport, pixels: np.ndarray):
+    """The rows of `transport`'s terms that hold `pixels` (flat indices), in their order:
+    light groups' transports may list their pixels apart."""
+    own = np.asarray(transport.translucent_pixels())
+    order = np.argsort(own)
+    i = order[np.clip(np.searchsorted(own[order], pixels), 0, max(own.size - 1, 0))]
+    if own.size == 0 or not np.array_equal(own[i], pixels):
+        raise RuntimeError("a light group's trace lacks terms for fitted pixels")
+    return jnp.asarray(i)
 
 
 # The residual and solver functions are cached per parameter layout, and the data travel as
