@@ -777,6 +777,12 @@ def _trusted_step(problem, data, args, y, dy, loss, sd=None):
     return t * dy, t
 
 
+def pooled_after(pool: list, k: int, lin: RoundLinearisation, start: int = 0) -> list:
+    """The rounds' pool `[(round, linearisation)]` after round `k`'s `lin`: the rounds
+    since `start` (where the approach ended) and at most the later half of all rounds."""
+    return [(i, p) for i, p in pool + [(k, lin)] if i >= max(start, k // 2)]
+
+
 @eqx.filter_jit
 def _cross_loss(residuals, y, args):
     r = residuals(y, args)
@@ -847,7 +853,7 @@ def _retraced_rounds(problem: FitProblem, keys, media, y, eta, refit: bool = Fal
         if instr is None and opts.instruments == "diffusion":
             instr = DiffusionInstruments(problem, dt)
         lin = _linearised(problem, residuals, y, args, data, instr)
-        pool = [(i, p) for i, p in pool + [(k, lin)] if i >= max(start, k // 2)]
+        pool = pooled_after(pool, k, lin, start)
         window = [p for _, p in pool]
         dy = pooled_step(window, y)
         if not np.all(np.isfinite(dy)):
