@@ -246,11 +246,13 @@ def test_rounds_following_their_solution_cover_the_truth(x64):
     at the current solution (the proposal follows it, from a start off by 0.2-0.3 in log),
     pooled over the later half (`pooled_after`), a `pooled_step` each, the jump onto the
     root (`to_root`) and the pooled covariance; one target per repetition, heavy-tailed
-    walk noise (Student t, 3 dof) in the residuals and in the Jacobians (a pooled slope
-    known to about 9 %), correlated between them (0.7), and instruments off by up to 40 %.
-    The truth within 2 reported standard errors in 90-99 % of the repetitions, and the rms
-    z near 1. (At 40 % slope noise, as on the skim-milk cylinder's `sigma_s`, the same
-    rounds give 93 % with 4 % beyond 3 standard errors: README, "Coverage on objects".)"""
+    walk noise (Student t, 3 dof) in the residuals and in the Jacobians, correlated between
+    them (0.7), a pooled slope known to about 40 % in two directions (as the skim-milk
+    cylinder's `sigma_s`), and instruments 0.7 and 1.4 of the exact slope there. The truth
+    within 2 reported standard errors in 92-99.5 % of the repetitions, the rms z near 1 and
+    under 2.5 % beyond 3. Shortening the steps only where the slope exceeded the instruments
+    by two of its standard errors (`SHORTEN_SE` 2) left the rounds a standard error behind
+    the root there: rms z 1.26, 4 % beyond 3 (`benchmarks/rounds_model.py`)."""
     shape = (24, 24)
     pix = np.arange(shape[0] * shape[1])
     J0 = _smooth_jacobian(shape)
@@ -265,7 +267,7 @@ def test_rounds_following_their_solution_cover_the_truth(x64):
             eps = rng.standard_t(3, size=(2, m))
             noise = 0.7 * eps[:, :, None] + 0.71 * rng.standard_t(3, size=(2, m, n))
             lin = _solve.RoundLinearisation.of(
-                y.copy(), J0 + 2.0 * noise, (J0 @ y)[None] - e + 0.3 * eps, pix, shape, T
+                y.copy(), J0 + 10.0 * noise, (J0 @ y)[None] - e + 0.3 * eps, pix, shape, T
             )
             pool = _solve.pooled_after(pool, k, lin)
             window = [p for _, p in pool]
@@ -276,10 +278,9 @@ def test_rounds_following_their_solution_cover_the_truth(x64):
     zs = np.array(zs)
     cover = np.mean(np.abs(zs) < 2, axis=0)
     rms = np.sqrt(np.mean(zs**2, axis=0))
-    assert np.all((cover > 0.9) & (cover < 0.99)) and np.all((rms > 0.8) & (rms < 1.25)), (
-        cover,
-        rms,
-    )
+    tail = np.mean(np.abs(zs) > 3, axis=0)
+    assert np.all((cover > 0.92) & (cover < 0.995)), cover
+    assert np.all((rms > 0.7) & (rms < 1.15)) and np.all(tail < 0.025), (rms, tail)
 
 
 def test_instruments_keep_a_smooth_derivative_and_average_its_noise():

@@ -327,8 +327,8 @@ def pooled_step(rounds, y) -> np.ndarray:
     1]` (noise-free, it is at most the Gram matrix): a positive definite matrix, steps at
     most `MAX_STEP_GAIN` times the plain ones in any direction.
 
-    The step is then shortened wherever the pooled slope `B` is, beyond two of its standard
-    errors, steeper than that matrix (`_shortened`): a Gram step converges only where the
+    The step is then shortened wherever the pooled slope `B` is, beyond `SHORTEN_SE` of its
+    standard errors, steeper than that matrix (`_shortened`): a Gram step converges only where the
     exact derivative is less than twice the instruments' (the iteration factor `1 - kappa`),
     and the diffusion instruments of the ketchup sphere's red channel are a quarter of it
     (`kappa` 3.7-4.2 over 14 rounds, measured 2026-12-07: red `sigma_a` oscillated by
@@ -353,8 +353,8 @@ def pooled_step(rounds, y) -> np.ndarray:
 
 def _shortened(rounds, W, step_w) -> np.ndarray:
     """`step_w` (in the basis `W`, `W^T M W = 1`) divided, along each eigenvector of the
-    symmetric part of the pooled slope `K = W^T B W`, by its eigenvalue `kappa` less two of
-    its standard errors (the scatter of the pixel-block groups' shares), where that exceeds
+    symmetric part of the pooled slope `K = W^T B W`, by its eigenvalue `kappa` less
+    `SHORTEN_SE` of its standard errors (the scatter of the pixel-block groups' shares), where that exceeds
     1: never further than the slope says, and unchanged where `K` cannot be told from 1 or
     is smaller (a shorter slope only slows a Gram step, as noise in `B` would mislead a
     Newton step)."""
@@ -362,8 +362,18 @@ def _shortened(rounds, W, step_w) -> np.ndarray:
     K = W.T @ parts.sum(axis=0) @ W
     kappa, Q = np.linalg.eigh(0.5 * (K + K.T))
     se = _block_se(parts, W @ Q)
-    div = np.maximum(kappa - 2.0 * se, 1.0)
+    div = np.maximum(kappa - SHORTEN_SE * se, 1.0)
     return Q @ ((Q.T @ step_w) / div)
+
+
+# how many of its standard errors the slope's eigenvalue `kappa` is lowered by before a step
+# is divided by it (`_shortened`). With 2, a direction whose instruments were 0.7 of the
+# exact slope, at the 40 % slope noise of the skim-milk cylinder's `sigma_s`, was left
+# unshortened, the rounds trailed its root by about one standard error and the jump onto it
+# leaned on the noisy slope: 4 % of the truths beyond 3 standard errors, rms z 1.26; with
+# 1, 1.3 % and 1.02 (exact instruments unchanged: 0.7 %, 0.93; with 0: 3.3 %, 1.05).
+# `benchmarks/rounds_model.py`, measured 2026-12-07.
+SHORTEN_SE = 1.0
 
 
 def _block_se(parts, basis) -> np.ndarray:
