@@ -156,10 +156,11 @@ def trace_data(
         keep[np.asarray(fixed)] = True
     transports = [renderer.trace(key, progress, etas, g, proposal, keep) for g in gains]
     sets = [np.asarray(t.translucent_pixels()) for t in transports]
-    if any(not np.array_equal(np.sort(p), np.sort(sets[0])) for p in sets[1:]):
+    if keep is None and any(not np.array_equal(np.sort(p), np.sort(sets[0])) for p in sets[1:]):
         # a walk that reaches only one group's light has terms in that group alone: trace
         # them again keeping the union, so that every group has rows for the same pixels
-        keep = np.zeros(tgt.shape[0] * tgt.shape[1], dtype=bool) if keep is None else keep
+        # (once: a later trace keeps the fitted pixels in every group already)
+        keep = np.zeros(tgt.shape[0] * tgt.shape[1], dtype=bool)
         keep[np.concatenate(sets)] = True
         transports = [renderer.trace(key, progress, etas, g, proposal, keep) for g in gains]
     transport = transports[0]
