@@ -10,7 +10,8 @@ Prints, on the marble cube of `benchmarks/vs_mitsuba.py`:
   channel; "time to equal noise" is wall x variance, relative to the default;
 - the re-weighting shade of a 256 x 256 image (the per-iteration cost of a fit: terms of the
   default shape, 16 spp x 4 records per pixel), and its forward-mode Jacobian (6 coefficients);
-- a fit of the cube's 6 coefficients from a volumetric target (independent seed), with its
+- a fit of the cube's 6 coefficients (or, with `--object cylinder | sphere`, the skim-milk
+  cylinder's or the ketchup sphere's) from a volumetric target (independent seed), with its
   wall time, trace time and the errors in standard errors. The issue's 120 s case (256 x 256
   exact target, 4 rounds of 4 spp against a 16 spp target; about 2 min):
 
@@ -103,11 +104,11 @@ def shade_timing() -> None:
     )
 
 
-def fit_timing(size: int, spp: int, target_spp: int, rounds: int) -> None:
-    sc = sssjax.load_scene(scene_dict("cube", size, spp))
+def fit_timing(size: int, spp: int, target_spp: int, rounds: int, kind: str = "cube") -> None:
+    sc = sssjax.load_scene(scene_dict(kind, size, spp))
     m = sc.media()["obj"]
     t0 = time.perf_counter()
-    tgt = sssjax.render(sssjax.load_scene(scene_dict("cube", size, target_spp)), key=1)
+    tgt = sssjax.render(sssjax.load_scene(scene_dict(kind, size, target_spp)), key=1)
     print(f"\ntarget ({size} x {size}, {target_spp} spp): {time.perf_counter() - t0:.0f} s")
     t0 = time.perf_counter()
     r = sssjax.fit(
@@ -121,7 +122,7 @@ def fit_timing(size: int, spp: int, target_spp: int, rounds: int) -> None:
     z = [(r.values[n] - t) / r.stderr[n] for n, t in zip(r.names, truth, strict=True)]
     err = [r.values[n] / t - 1 for n, t in zip(r.names, truth, strict=True)]
     print(
-        f"fit of the cube ({size} x {size}, {spp} spp, {rounds} rounds), 6 coefficients "
+        f"fit of the {kind} ({size} x {size}, {spp} spp, {rounds} rounds), 6 coefficients "
         f"from x1.5 / x0.7: "
         f"{wall:.0f} s wall (trace {r.trace_time_s:.0f} s, {r.steps} steps), {r.message}"
     )
@@ -139,12 +140,15 @@ def main() -> None:
     ap.add_argument("--fit-spp", type=int, default=None, help="default: --spp")
     ap.add_argument("--target-spp", type=int, default=None, help="default: the fit's spp")
     ap.add_argument("--rounds", type=int, default=8, help="proposal_rounds")
+    ap.add_argument(
+        "--object", default="cube", choices=["cube", "cylinder", "sphere"], help="the fit's scene"
+    )
     a = ap.parse_args()
     if not a.fit_only:
         shade_timing()
         noise_table(a.size, a.spp)
     fs, fspp = a.fit_size or a.size, a.fit_spp or a.spp
-    fit_timing(fs, fspp, a.target_spp or fspp, a.rounds)
+    fit_timing(fs, fspp, a.target_spp or fspp, a.rounds, a.object)
 
 
 if __name__ == "__main__":

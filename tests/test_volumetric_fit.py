@@ -609,6 +609,39 @@ def test_pooled_step_converges_where_the_instruments_are_four_times_too_shallow(
     np.testing.assert_allclose(_solve.pooled_step(exact, np.zeros(3)), gram_step, rtol=1e-9)
 
 
+def test_pooled_step_follows_a_slope_that_is_not_symmetric(x64):
+    """Instruments whose slope `T^T J` is not symmetric: here `M^-1 B` is the diffusion
+    instruments' of the ketchup sphere's red channel (measured 2026-12-08: `[[5.4, -0.06],
+    [1.7, 0.86]]` in (`sigma_a`, `sigma_s`)), a third coefficient exact. Shortened along
+    the slope's own eigenvectors, every step goes towards the root and the rounds settle
+    there; along its symmetric part's eigenvectors the first step went away from it (here
+    in the third coefficient; on the sphere in `sigma_a`, where every such step raised the
+    loss and was halved to nothing)."""
+    shape = (24, 24)
+    pix = np.arange(shape[0] * shape[1])
+    # a textured image (each pixel's derivative its own) with the smooth image's Gram
+    # matrix, so that the pixel-block groups' scatter, which judges the asymmetry, is the
+    # noise's (the asymmetry is 4-5 of its standard errors on the sphere) and not a smooth
+    # image's own variation from block to block
+    Js = _smooth_jacobian(shape)
+    L = np.linalg.cholesky(Js.T @ Js / Js.shape[0])
+    J0 = np.random.default_rng(100).normal(size=Js.shape) @ L.T
+    A = np.array([[5.4, -0.06, 0.0], [1.7, 0.86, 0.0], [0.0, 0.0, 1.0]])
+    T = J0 @ np.linalg.inv(A)  # then M^-1 B = (T^T T)^-1 T^T J0 = A
+    d = np.array([-0.4, 0.36, 0.2])  # the root, from y = 0 (x1.5 / x0.7 from the truth)
+    for seed in range(3):
+        rounds = _image_rounds(np.random.default_rng(seed), J0, -J0 @ d, pix, shape, 4, 0.3, T)
+        M, B = sum(rd.gram() for rd in rounds), sum(rd.slope() for rd in rounds)
+        np.testing.assert_allclose(np.linalg.solve(M, B), A, atol=0.15)
+        step = _solve.pooled_step(rounds, np.zeros(3))
+        assert np.all(np.sign(step) == np.sign(d)), (seed, step)  # towards the root
+        y = step
+        for _ in range(7):
+            y = y + _solve.pooled_step(rounds, y)
+        np.testing.assert_allclose(_solve.root_offset(rounds, y), 0.0, atol=1e-3)
+        np.testing.assert_allclose(y, d, atol=0.05)
+
+
 def test_history_holds_the_traced_points_then_the_root_the_result_reports():
     """The history's points are where the rounds traced (the first at the start), each with
     its trace's cross loss, and its last point is the answer: the pooled root, at the

@@ -352,18 +352,60 @@ def pooled_step(rounds, y) -> np.ndarray:
 
 
 def _shortened(rounds, W, step_w) -> np.ndarray:
-    """`step_w` (in the basis `W`, `W^T M W = 1`) divided, along each eigenvector of the
-    symmetric part of the pooled slope `K = W^T B W`, by its eigenvalue `kappa` less
-    `SHORTEN_SE` of its standard errors (the scatter of the pixel-block groups' shares), where that exceeds
-    1: never further than the slope says, and unchanged where `K` cannot be told from 1 or
-    is smaller (a shorter slope only slows a Gram step, as noise in `B` would mislead a
-    Newton step)."""
+    """`step_w` (in the basis `W`, `W^T M W = 1`) divided, along each right eigenvector of
+    the pooled slope `K = W^T B W`, by the real part of its eigenvalue `kappa` less
+    `SHORTEN_SE` of its standard errors (the scatter of the pixel-block groups' shares),
+    where that exceeds 1: never further than the slope says, and unchanged where `K` cannot
+    be told from 1 or is smaller (a shorter slope only slows a Gram step, as noise in `B`
+    would mislead a Newton step).
+
+    The eigenvectors of `K` itself, not only of its symmetric part: the slope `T^T J` of
+    instruments unlike the exact derivative is not symmetric. On the ketchup sphere's red
+    channel (64 x 64, measured 2026-12-08) `M^-1 B` was `[[5.4, -0.06], [1.7, 0.86]]` in
+    (`sigma_a`, `sigma_s`): the symmetric part's eigenvectors are rotated from its own,
+    and dividing along them turned the Gram step's `sigma_a` from -1.87 (towards the
+    truth, -0.41) to +1.15; every such step raised the trace's loss, was halved to 1/256
+    and restarted the approach, so the rounds never settled. Along `K`'s own eigenvectors
+    the same step is (-0.34, +0.70), and the sphere's three coverage fits settle. But only
+    the asymmetry that the pixel-block groups agree on (each element of `(K - K^T) / 2`
+    beyond `ASYM_SE` of its standard errors; 4-5 on the sphere's red channel) is kept: the
+    eigenvectors of a noisy `K` near the identity are noise. On the marble cube (6 seeds,
+    64 x 64, 8 spp) following all of it left 2 fits unsettled (rms z 1.23), with
+    `ASYM_SE` 2 3 of them, with 4 none (rms z 0.99; the symmetric part alone: 1 of 6,
+    1.01). Where the eigenvectors are too close to parallel to separate (a condition
+    number beyond `MAX_EIG_COND`), the symmetric part's are used."""
     parts = sum(rd.slope_parts() for rd in rounds)  # (GROUPS, n, n)
-    K = W.T @ parts.sum(axis=0) @ W
-    kappa, Q = np.linalg.eigh(0.5 * (K + K.T))
-    se = _block_se(parts, W @ Q)
-    div = np.maximum(kappa - SHORTEN_SE * se, 1.0)
-    return Q @ ((Q.T @ step_w) / div)
+    parts_w = np.einsum("ia,gij,jb->gab", W, parts, W)  # the groups' shares of K
+    used = np.count_nonzero(np.any(parts != 0, axis=(1, 2)))
+    K = parts_w.sum(axis=0)
+    sym, asym = 0.5 * (K + K.T), 0.5 * (K - K.T)
+    asym_se = (
+        np.sqrt(used * np.var(0.5 * (parts_w - parts_w.transpose(0, 2, 1)), axis=0, ddof=1))
+        if used > 1
+        else np.inf
+    )
+    keep = np.abs(asym) > ASYM_SE * asym_se
+    kappa, Q = np.linalg.eig(sym + np.where(keep, asym, 0.0)) if keep.any() else (None, None)
+    if Q is None or not np.all(np.isfinite(kappa)) or np.linalg.cond(Q) > MAX_EIG_COND:
+        kappa, Q = np.linalg.eigh(sym)
+    Qinv = np.linalg.inv(Q)
+    # each eigenvalue's share per group: u_i^T K_g v_i (u_i the left eigenvectors, u_i^T
+    # v_i = 1); their scatter is its standard error
+    per = np.einsum("ia,gab,bi->gi", Qinv, parts_w, Q).real
+    se = np.sqrt(used * np.var(per, axis=0, ddof=1)) if used > 1 else np.inf
+    div = np.maximum(kappa.real - SHORTEN_SE * se, 1.0)
+    return (Q @ ((Qinv @ step_w) / div)).real
+
+
+# how many of its standard errors an element of the slope's antisymmetric part must exceed
+# to be followed (`_shortened`); the rest is taken as noise. The errors come from the
+# scatter of `GROUPS` groups (7 degrees of freedom: beyond 4 about 0.5 % of the time by
+# chance; the marble cube's noise reached 3.4)
+ASYM_SE = 4.0
+# the condition number of `K`'s eigenvectors beyond which `_shortened` takes those of its
+# symmetric part instead (nearly parallel eigenvectors, as noise makes of a near-double
+# eigenvalue, would amplify the step)
+MAX_EIG_COND = 1e3
 
 
 # how many of its standard errors the slope's eigenvalue `kappa` is lowered by before a step
