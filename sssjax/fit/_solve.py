@@ -366,7 +366,8 @@ def _shortened(rounds, W, step_w) -> np.ndarray:
     and dividing along them turned the Gram step's `sigma_a` from -1.87 (towards the
     truth, -0.41) to +1.15; every such step raised the trace's loss, was halved to 1/256
     and restarted the approach, so the rounds never settled. Along `K`'s own eigenvectors
-    the same step is (-0.34, +0.70), and the sphere's three coverage fits settle. But only
+    the same step is (-0.34, +0.70), and two of the sphere's three coverage fits settle
+    (none did; the third ends within 1.5 standard errors of the truth). But only
     the asymmetry that the pixel-block groups agree on (each element of `(K - K^T) / 2`
     beyond `ASYM_SE` of its standard errors; 4-5 on the sphere's red channel) is kept: the
     eigenvectors of a noisy `K` near the identity are noise. On the marble cube (6 seeds,
@@ -376,23 +377,17 @@ def _shortened(rounds, W, step_w) -> np.ndarray:
     number beyond `MAX_EIG_COND`), the symmetric part's are used."""
     parts = sum(rd.slope_parts() for rd in rounds)  # (GROUPS, n, n)
     parts_w = np.einsum("ia,gij,jb->gab", W, parts, W)  # the groups' shares of K
-    used = np.count_nonzero(np.any(parts != 0, axis=(1, 2)))
     K = parts_w.sum(axis=0)
     sym, asym = 0.5 * (K + K.T), 0.5 * (K - K.T)
-    asym_se = (
-        np.sqrt(used * np.var(0.5 * (parts_w - parts_w.transpose(0, 2, 1)), axis=0, ddof=1))
-        if used > 1
-        else np.inf
-    )
+    asym_se = _scatter_se(0.5 * (parts_w - parts_w.transpose(0, 2, 1)), parts)
     keep = np.abs(asym) > ASYM_SE * asym_se
     kappa, Q = np.linalg.eig(sym + np.where(keep, asym, 0.0)) if keep.any() else (None, None)
     if Q is None or not np.all(np.isfinite(kappa)) or np.linalg.cond(Q) > MAX_EIG_COND:
         kappa, Q = np.linalg.eigh(sym)
     Qinv = np.linalg.inv(Q)
-    # each eigenvalue's share per group: u_i^T K_g v_i (u_i the left eigenvectors, u_i^T
-    # v_i = 1); their scatter is its standard error
-    per = np.einsum("ia,gab,bi->gi", Qinv, parts_w, Q).real
-    se = np.sqrt(used * np.var(per, axis=0, ddof=1)) if used > 1 else np.inf
+    # each eigenvalue's share per group is u_i^T K_g v_i (u_i the left eigenvectors,
+    # u_i^T v_i = 1): its scatter is the eigenvalue's standard error
+    se = _block_se(parts, W @ Q, Qinv @ W.T)
     div = np.maximum(kappa.real - SHORTEN_SE * se, 1.0)
     return (Q @ ((Qinv @ step_w) / div)).real
 
@@ -418,13 +413,21 @@ MAX_EIG_COND = 1e3
 SHORTEN_SE = 1.0
 
 
-def _block_se(parts, basis) -> np.ndarray:
-    """The standard error of each diagonal element of `basis^T (sum parts) basis`, from
-    the scatter of the pixel-block groups' shares `parts` `(GROUPS, n, n)` (inf with one)."""
-    per = np.einsum("ia,gij,ja->ga", basis, parts, basis)  # (GROUPS, n): the blocks' shares
+def _block_se(parts, basis, left=None) -> np.ndarray:
+    """The standard error of each diagonal element of `left (sum parts) basis` (`left`
+    default `basis^T`; real parts), from the scatter of the pixel-block groups' shares
+    `parts` `(GROUPS, n, n)` (inf with one)."""
+    left = basis.T if left is None else left
+    per = np.einsum("ia,gab,bi->gi", left, parts, basis).real  # (GROUPS, n): the shares
+    return _scatter_se(per, parts)
+
+
+def _scatter_se(per, parts) -> np.ndarray:
+    """The standard error of the sum over groups of `per` `(GROUPS, ...)`, from its scatter
+    over the groups of `parts` that have any rows (inf with one)."""
     used = np.count_nonzero(np.any(parts != 0, axis=(1, 2)))
     return (
-        np.sqrt(used * np.var(per, axis=0, ddof=1)) if used > 1 else np.full(per.shape[1], np.inf)
+        np.sqrt(used * np.var(per, axis=0, ddof=1)) if used > 1 else np.full(per.shape[1:], np.inf)
     )
 
 
