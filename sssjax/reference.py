@@ -755,7 +755,8 @@ def to_profile(
     `normalization` `"entered"` (like `dipole.Rd`) or `"incident"`.
 
     **Returns:** a `Profile` with `r` the bins' area-weighted radii, `mean` and `stderr`
-    `(n, len(refs))` in mm^-2, and `counts` the fewest exit events of a channel per bin.
+    `(n, len(refs))` in mm^-2, `counts` the fewest exit events of a channel per bin, and
+    `bounds` the bins' edges (so `fit_profile` averages its model over each bin).
     """
     from .measure import Profile
 
@@ -773,7 +774,9 @@ def to_profile(
     mean = np.stack([getattr(r, a) for r in refs], 1)
     se = np.stack([getattr(r, a + "_stderr") for r in refs], 1)
     counts = np.min(np.stack([r.counts for r in refs], 1), 1)
-    return Profile(r=refs[0].r.copy(), mean=mean, stderr=se, counts=counts)
+    e = np.asarray(refs[0].r_edges, np.float64)
+    bounds = np.stack([e[:-1], e[1:]], 1)
+    return Profile(r=refs[0].r.copy(), mean=mean, stderr=se, counts=counts, bounds=bounds)
 
 
 # --- closed forms for single scattering ----------------------------------------------------

@@ -126,6 +126,17 @@ def test_tail_decays_as_case_eigenvalue(x64):
 
 def test_positive_finite_and_finite_gradients_at_the_edges():
     r = jnp.asarray([0.0, 1e-6, 0.3, 5.0, 80.0, 2000.0])
+
+    # one compiled program for every case (op-by-op dispatch of the table took 47 s)
+    @jax.jit
+    def values_and_jacobians(c):
+        fns = (
+            lambda x: profiles.Rd(r, x[0], x[1], x[2], "tabulated"),
+            lambda x: profiles.single_scatter(r, x[0], x[1], x[2]),
+        )
+        total = profiles.Rd_total(c[0], c[1], c[2], "tabulated")
+        return [fn(c) for fn in fns], [jax.jacfwd(fn)(c)[:, :2] for fn in fns], total
+
     for sa, sp, eta in [
         (0.0, 1.0, 1.3),
         (1e-7, 2.0, 1.0),
@@ -134,15 +145,11 @@ def test_positive_finite_and_finite_gradients_at_the_edges():
         (0.01, 1.0, 1.8),
         (0.01, 1.0, 0.9),
     ]:
-        for fn in (
-            lambda a, p: profiles.Rd(r, a, p, eta, "tabulated"),
-            lambda a, p: profiles.single_scatter(r, a, p, eta),
-        ):
-            v = np.asarray(fn(sa, sp))
+        vals, jacs, t = values_and_jacobians(jnp.asarray([sa, sp, eta]))
+        for v, g in zip(vals, jacs, strict=True):
+            v = np.asarray(v)
             assert np.all(np.isfinite(v)) and np.all(v >= 0), (sa, sp, eta, v)
-            g = jax.jacfwd(lambda c: fn(c[0], c[1]))(jnp.asarray([sa, sp]))
             assert np.all(np.isfinite(np.asarray(g))), (sa, sp, eta)
-        t = profiles.Rd_total(sa, sp, eta, "tabulated")
         assert np.isfinite(float(t))
     # strictly positive until e^{-sigma_tr r} underflows in float32
     a = np.geomspace(1e-5, 10.0, 30)
@@ -168,8 +175,9 @@ def test_gradients_match_central_differences(x64, sa, sp, eta):
             ]
         )
 
+    f = jax.jit(f)  # compiled once: op-by-op dispatch of the table dominated (31 s)
     c0 = jnp.asarray([sa, sp, eta], jnp.float64)
-    J = np.asarray(jax.jacfwd(f)(c0))
+    J = np.asarray(jax.jit(jax.jacfwd(f))(c0))
     for k in range(3):
         h = 1e-6 * float(c0[k])
         e = jnp.zeros(3).at[k].set(h)
@@ -193,7 +201,8 @@ def _channel_profile(sa, sp, seed):
     edges = np.concatenate([[0.0], np.geomspace(0.02, 30.0, 129)])
     n = COVERAGE_PHOTONS if sp / (sa + sp) > 0.9 else 16 * COVERAGE_PHOTONS
     ref = reference.simulate(sa, sp, 0.0, 1.3, n_photons=n, seed=seed, r_edges=edges).entered()
-    return ref.r[1:], ref.profile[1:], ref.profile_stderr[1:]
+    bounds = np.stack([edges[1:-1], edges[2:]], 1)
+    return ref.r[1:], ref.profile[1:], ref.profile_stderr[1:], bounds
 
 
 @pytest.mark.slow
@@ -213,7 +222,7 @@ def test_tabulated_fit_recovers_preset_channels_with_honest_error_bars():
         m = preset(name)
         for c in range(3):
             sa, sp = float(m.sigma_a[c]), float(m.sigmap_s[c])
-            r, mean, se = _channel_profile(sa, sp, 31_000 + 3 * i + c)
+            r, mean, se, bounds = _channel_profile(sa, sp, 31_000 + 3 * i + c)
             for r_max in (10.0, 30.0):
                 ok = (r <= r_max) & (mean > 0) & (se < 0.25 * np.where(mean > 0, mean, 1))
                 prof = Profile(
@@ -221,6 +230,7 @@ def test_tabulated_fit_recovers_preset_channels_with_honest_error_bars():
                     mean=mean[ok, None],  # one channel: fit_profile fits each alone
                     stderr=se[ok, None],
                     counts=np.ones(ok.sum(), np.int64),
+                    bounds=bounds[ok],
                 )
                 f = fit_profile(prof, 1.3, model="tabulated", orders="all")
                 for got, true, sd in (
