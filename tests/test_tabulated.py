@@ -5,6 +5,7 @@ every check here is at coefficients off the grid, with seeds the build never use
 against a closed form (single scattering, Case's asymptotic decay, finite differences).
 """
 
+import functools
 import math
 from pathlib import Path
 
@@ -185,81 +186,6 @@ def test_gradients_match_central_differences(x64, sa, sp, eta):
         np.testing.assert_allclose(J[:, k], fd, rtol=1e-4, atol=1e-6 / float(c0[k]))
 
 
-# --- the measurement step with the tabulated profile ------------------------------------------
-COVERAGE_PHOTONS = 32_768
-
-
-def _channel_profile(sa, sp, seed):
-    """The total exitance (all orders, per unit power entering) of one channel, 40 bins per
-    decade from 0.02 to 30 mm, from a fresh reference run (seeds the table never used).
-
-    Dark channels get 16 times the photons (they are cheap: a few free flights each): with
-    32k photons the exitance of ketchup's green and blue has 10-25% errors in every bin, and
-    a log-residual fit of such noisy data is biased by their skew (measured: +18% in
-    sigma_a at z = 4.9), whatever the model. The centre disc (r < 0.02 mm) is left out: its
-    mean is not the value at its mean radius where single scattering peaks."""
-    edges = np.concatenate([[0.0], np.geomspace(0.02, 30.0, 129)])
-    n = COVERAGE_PHOTONS if sp / (sa + sp) > 0.9 else 16 * COVERAGE_PHOTONS
-    ref = reference.simulate(sa, sp, 0.0, 1.3, n_photons=n, seed=seed, r_edges=edges).entered()
-    bounds = np.stack([edges[1:-1], edges[2:]], 1)
-    return ref.r[1:], ref.profile[1:], ref.profile_stderr[1:], bounds
-
-
-@pytest.mark.slow
-def test_tabulated_fit_recovers_preset_channels_with_honest_error_bars():
-    """`fit_profile(model="tabulated")` on fresh exact profiles (known power, every order,
-    r <= 10 mm and r <= 30 mm) of marble, skim milk, ketchup and skin1 (albedo 0.02 to
-    0.999): every coefficient within 4% or 2.5 reported standard errors, the truth within
-    2 reported standard errors for at least 85% of them. (All 33 preset channels, and the
-    diffusion profiles on the same data: README, "Accuracy".) And the known power helps:
-    on the same data (r <= 30 mm) a free-scale fit's median error is no smaller, and its
-    standard errors are larger."""
-    from sssjax.measure import Profile, fit_profile
-    from sssjax.media import preset
-
-    rows, known, free = [], [], []
-    for i, name in enumerate(("marble", "skimmilk", "ketchup", "skin1")):
-        m = preset(name)
-        for c in range(3):
-            sa, sp = float(m.sigma_a[c]), float(m.sigmap_s[c])
-            r, mean, se, bounds = _channel_profile(sa, sp, 31_000 + 3 * i + c)
-            for r_max in (10.0, 30.0):
-                ok = (r <= r_max) & (mean > 0) & (se < 0.25 * np.where(mean > 0, mean, 1))
-                prof = Profile(
-                    r=r[ok],
-                    mean=mean[ok, None],  # one channel: fit_profile fits each alone
-                    stderr=se[ok, None],
-                    counts=np.ones(ok.sum(), np.int64),
-                    bounds=bounds[ok],
-                )
-                f = fit_profile(prof, 1.3, model="tabulated", orders="all")
-                for got, true, sd in (
-                    (f.sigma_a[0], sa, f.sigma_a_stderr[0]),
-                    (f.sigmap_s[0], sp, f.sigmap_s_stderr[0]),
-                ):
-                    rows.append((name, "RGB"[c], r_max, got / true - 1, sd / true))
-                if r_max == 30.0:
-                    g = fit_profile(prof, 1.3, model="tabulated", orders="all", free_scale=True)
-                    known.append(
-                        (abs(f.sigma_a[0] / sa - 1), abs(f.sigmap_s[0] / sp - 1))
-                        + (f.sigma_a_stderr[0] / sa, f.sigmap_s_stderr[0] / sp)
-                    )
-                    free.append(
-                        (abs(g.sigma_a[0] / sa - 1), abs(g.sigmap_s[0] / sp - 1))
-                        + (g.sigma_a_stderr[0] / sa, g.sigmap_s_stderr[0] / sp)
-                    )
-    bad = [x for x in rows if abs(x[3]) > max(0.04, 2.5 * x[4])]
-    assert not bad, bad
-    z = np.array([abs(x[3]) / x[4] for x in rows])
-    assert np.mean(z < 2) >= 0.85, sorted(z)[-8:]
-    # the median |error| over all 24 coefficients; and the known power is information, so
-    # the standard errors shrink (a wrong absolute level would show as the errors growing)
-    known, free = np.array(known), np.array(free)
-    med_known, med_free = np.median(known[:, :2]), np.median(free[:, :2])
-    assert med_known <= med_free, (med_known, med_free)
-    assert np.mean(known[:, 2:] <= free[:, 2:]) >= 0.9, (known[:, 2:], free[:, 2:])
-
-
 def test_renderer_uses_the_tabulated_profile():
     """`[sss] profile = "tabulated"` renders: finite, and a beam on a thick slab gives back
     the table's profile (the renderer's multiple scattering is `R_d` of its profile)."""
@@ -317,3 +243,117 @@ def test_eta_beyond_the_table_is_said_by_every_entry():
         "its value at eta = 1.6 (not exact); fix eta, or use another profile"
     ]
     assert said(1.55) == [] and said(1.72, "pbd") == [] and said(1.72, transport="volumetric") == []
+
+
+# --- all 33 preset channels, from stored independent profiles --------------------------------
+PRESET_PROFILES = Path(__file__).resolve().parent / "data" / "preset_profiles.npz"
+FIT_ROWS = 160  # every fitted profile padded to this many rows: one compilation
+
+
+@functools.cache
+def _preset_fits(r_max, free_scale=False):
+    """`_fit_presets_here` in a fresh process with XLA's default optimisation: the suite
+    compiles at level 0 (`conftest.py`, compile time), which makes these 99 long optimiser
+    loops about 5 times slower (measured: 155 s against 35 s)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = env.get("XLA_FLAGS", "").replace("--xla_backend_optimization_level=0", "")
+    code = (
+        "import json, sys; sys.path.insert(0, sys.argv[1]); "
+        "from test_tabulated import _fit_presets_here as f; "
+        "rows, spans = f(float(sys.argv[2]), sys.argv[3] == '1'); "
+        "print(json.dumps([rows, [[k[0], k[1], v] for k, v in spans.items()]]))"
+    )
+    here = str(Path(__file__).resolve().parent)
+    out = subprocess.run(
+        [sys.executable, "-c", code, here, str(r_max), "1" if free_scale else "0"],
+        env=env,
+        capture_output=True,
+        text=True,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    rows, spans = json.loads(out.stdout.strip().splitlines()[-1])
+    return [tuple(x) for x in rows], {(a, b): v for a, b, v in spans}
+
+
+def _fit_presets_here(r_max, free_scale=False):
+    """`fit_profile(model="tabulated", orders="all")`, known power (or a free scale), of every preset channel's
+    stored exact profile (`benchmarks/preset_profiles.py`: seeds neither the table's build
+    nor the accuracy benchmark uses), from 0.1 mfp out to `r_max` mm, as far as the
+    Monte Carlo's relative error is below 25 %. Each channel alone, padded to `FIT_ROWS`
+    rows by repeating its first bin with a standard error 1e6 times its value.
+
+    **Returns:** rows `(preset, channel, quantity, error, se)`: `recovered / true - 1` and the
+    reported standard error over the truth; and per channel its span in diffusion lengths."""
+    from sssjax.measure import Profile, fit_profile
+    from sssjax.profiles import sigma_tr_better
+
+    data = np.load(PRESET_PROFILES)
+    eta = float(data["eta"])
+    names = sorted({k.split("/")[0] for k in data.files if "/" in k})
+    rows, spans = [], {}
+    for name in names:
+        sa, sp = data[f"{name}/sigma_a"], data[f"{name}/sigmap_s"]
+        e = data[f"{name}/r_edges"]
+        bounds = np.stack([e[:-1], e[1:]], 1)
+        r, mean, se = data[f"{name}/r"], data[f"{name}/mean"], data[f"{name}/stderr"]
+        for c in range(3):
+            m, s = mean[:, c], se[:, c]
+            ok = (r * (sa[c] + sp[c]) >= 0.1) & (r <= r_max) & (m > 0)
+            ok &= s < 0.25 * np.where(m > 0, m, 1.0)
+            pad = FIT_ROWS - ok.sum()
+            assert pad >= 0, (name, c, ok.sum())
+            prof = Profile(
+                r=np.concatenate([r[ok], np.full(pad, r[ok][0])]),
+                mean=np.concatenate([m[ok], np.full(pad, m[ok][0])])[:, None],
+                stderr=np.concatenate([s[ok], np.full(pad, 1e6 * m[ok][0])])[:, None],
+                counts=np.ones(ok.sum() + pad, np.int64),
+                bounds=np.concatenate([bounds[ok], np.repeat(bounds[ok][:1], pad, 0)]),
+            )
+            f = fit_profile(prof, eta, model="tabulated", orders="all", free_scale=free_scale)
+            assert bool(f.converged[0]), (name, "RGB"[c])
+            for q, got, true, sd in (
+                ("sigma_a", f.sigma_a[0], sa[c], f.sigma_a_stderr[0]),
+                ("sigmap_s", f.sigmap_s[0], sp[c], f.sigmap_s_stderr[0]),
+            ):
+                rows.append((name, "RGB"[c], q, float(got / true - 1), float(sd / true)))
+            ell = 1.0 / float(sigma_tr_better(sa[c], sp[c]))
+            spans[name, "RGB"[c]] = (r[ok].max() - r[ok].min()) / ell
+    return rows, {k: float(v) for k, v in spans.items()}
+
+
+@pytest.mark.parametrize("r_max", [10.0, 30.0])
+def test_tabulated_fit_recovers_all_33_preset_channels(r_max):
+    """The measurement step's acceptance (#14) on all 33 preset channels, r <= 10 mm and
+    r <= 30 mm, known power, every order: each coefficient within 3 % of the truth, except
+    where the profile spans fewer than two diffusion lengths (then `sigma_a` rests on the
+    absolute level, `sssjax measure` warns, and it must be within 2.5 of its own standard
+    errors instead); and the truth within 2 reported standard errors for at least 95 % of
+    the 66 coefficients."""
+    rows, spans = _preset_fits(r_max)
+    assert len(rows) == 66
+    bad = [
+        x
+        for x in rows
+        if abs(x[3]) > 0.03 and not (spans[x[0], x[1]] < 2.0 and abs(x[3]) < 2.5 * x[4])
+    ]
+    assert not bad, bad
+    z = sorted((abs(x[3]) / x[4], x) for x in rows)
+    assert np.mean([v < 2.0 for v, _ in z]) >= 0.95, z[-6:]
+
+
+def test_known_power_is_no_worse_than_a_free_scale_on_all_33_preset_channels():
+    """On the same stored exact profiles (r <= 30 mm): a known-power fit's median error is
+    no larger than a free-scale fit's, and the known power is information, so its standard
+    errors are smaller for at least 90 % of the coefficients (a wrong absolute level would
+    show as the known-power errors growing)."""
+    known, _ = _preset_fits(30.0)
+    free, _ = _preset_fits(30.0, free_scale=True)
+    err_k, err_f = np.abs([x[3] for x in known]), np.abs([x[3] for x in free])
+    assert np.median(err_k) <= np.median(err_f), (np.median(err_k), np.median(err_f))
+    se_k, se_f = np.array([x[4] for x in known]), np.array([x[4] for x in free])
+    assert np.mean(se_k <= se_f) >= 0.9, (se_k, se_f)
