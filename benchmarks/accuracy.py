@@ -82,6 +82,19 @@ def run_channel(sa, sps, eta, edges, seed, cfg):
     return reference.merge(pilot, main)
 
 
+def preset_bins(name: str):
+    """A preset's `sigma_a`, `sigmap_s` (float64, 1/mm) and its radial bin edges (mm): a
+    centre disc, then `N_PER_DECADE` log bins per decade from 0.01 mfp of its densest
+    channel to 100 mfp of its thinnest."""
+    m = preset(name)
+    sa = np.asarray(m.sigma_a, np.float64)
+    sps = np.asarray(m.sigmap_s, np.float64)
+    spt = sa + sps
+    lo, hi = 1e-2 / spt.max(), 1e2 / spt.min()
+    nb = int(np.ceil(N_PER_DECADE * np.log10(hi / lo)))
+    return sa, sps, np.concatenate([[0.0], np.geomspace(lo, hi, nb + 1)])
+
+
 def bin_mean(model, edges, sa, sps, eta, orders="multiple"):
     """Exact mean of `R_d` of `model` over each annulus (16-point Gauss-Legendre per bin);
     with `orders="all"` plus the exact single scattering (`measure.model_profile`)."""
@@ -650,13 +663,7 @@ def main() -> None:
     photons = 0
     k = 0
     for i, name in enumerate(names):
-        m = preset(name)
-        sa = np.asarray(m.sigma_a, np.float64)
-        sps = np.asarray(m.sigmap_s, np.float64)
-        spt = sa + sps
-        lo, hi = 1e-2 / spt.max(), 1e2 / spt.min()
-        nb = int(np.ceil(N_PER_DECADE * np.log10(hi / lo)))
-        edges = np.concatenate([[0.0], np.geomspace(lo, hi, nb + 1)])
+        sa, sps, edges = preset_bins(name)
         refs = []
         for c in range(3):
             k += 1

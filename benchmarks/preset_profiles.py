@@ -21,10 +21,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from accuracy import N_PER_DECADE, SETTINGS, run_channel
+from accuracy import SETTINGS, preset_bins, run_channel
 
 from sssjax import reference
-from sssjax.media import PRESET_ETA, PRESETS, preset
+from sssjax.media import PRESET_ETA, PRESETS
 
 ROOT = Path(__file__).resolve().parent.parent
 SEED0 = 40_000
@@ -39,13 +39,7 @@ def main() -> None:
     arrays: dict[str, np.ndarray] = {"eta": np.array(PRESET_ETA), "seed0": np.array(SEED0)}
     names = sorted(PRESETS)
     for i, name in enumerate(names):
-        m = preset(name)
-        sa = np.asarray(m.sigma_a, np.float64)
-        sps = np.asarray(m.sigmap_s, np.float64)
-        spt = sa + sps
-        lo, hi = 1e-2 / spt.max(), 1e2 / spt.min()
-        nb = int(np.ceil(N_PER_DECADE * np.log10(hi / lo)))
-        edges = np.concatenate([[0.0], np.geomspace(lo, hi, nb + 1)])
+        sa, sps, edges = preset_bins(name)
         refs = []
         for c in range(3):
             ref = run_channel(sa[c], sps[c], PRESET_ETA, edges, SEED0 + 10 * i + c, cfg)
