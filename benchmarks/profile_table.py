@@ -30,13 +30,20 @@ assembly merges every pass it finds.
 - `T[x, a', eta]`: the multiple-scattering profile as a correction to d'Eon's better dipole,
   `log(MC bin mean / better-dipole bin mean)` (both averaged over the same annulus, so the
   wide outer bins need no point-value approximation), smoothed along `log x` by a local
-  quadratic fit (tricube window of +-3 bins, weights 1 / variance). Where the Monte Carlo has
-  no precise bins (relative error above 20 %: the far tail of dark media, the innermost bins)
-  the correction is continued: beyond the last precise bin along the exact asymptotic decay
-  (`T` grows by `kappa_bd - kappa` per reduced mean free path, where `kappa = 1 / nu_0` is
-  Case's discrete eigenvalue of isotropic transport, `artanh(kappa) / kappa = 1 / a'`, and
-  `kappa_bd` the better dipole's `sigma_tr / sigmap_t`), before the first one as a constant.
-- `T_err`: one standard error of `T` (relative error of the profile), NaN where continued.
+  quadratic fit (tricube window of +-3 bins, weights 1 / variance). Where the Monte Carlo
+  has no precise bins (relative error above 20 %: the far tail, the innermost bins) the
+  correction is continued: before the first precise bin as a constant; beyond the last one
+  by `tail_model`'s envelope, fitted to the raw bins of the last decade: the mean of two
+  fits, the asymptotic decay with its `1/x` and `1/x^2` corrections (`T` grows by `slope =
+  kappa_bd - kappa` per reduced mean free path, `kappa = 1 / nu_0` Case's discrete
+  eigenvalue of isotropic transport, `artanh(kappa) / kappa = 1 / a'`, `kappa_bd` the better
+  dipole's `sigma_tr / sigmap_t`) and a line of free slope, with their difference counted
+  as error. The smoothed values are blended into it over the last half decade of precise
+  bins. `--check-tail` tests the continuation on held-out bins of the build's own runs (a
+  fit to the bins up to half the last precise `x`, against the bins beyond).
+- `T_err`: one standard error of `T` (relative error of the profile): the smoother's where
+  the runs are precise, the envelope's beyond (statistical and model error); `continued`
+  marks the latter.
 - `ms_total`, `ms_total_err`: the Monte Carlo total of multiple scattering (per unit power
   entering; its error includes the photons lost beyond `r_cap`, counted as a bias bound),
   and `log_total_ratio`, its log ratio to the better dipole's total (what is interpolated).
@@ -73,6 +80,7 @@ EDGES = np.concatenate([[0.0], np.geomspace(X_LO, X_HI, int(round(PER_DECADE * 4
 SEED0 = 7_000_000
 REL_OK = 0.2  # bins with a larger relative standard error are not used
 HALF = 3  # smoothing half-window, bins
+TAIL_DECADE = 10.0  # the tail model is fitted over this factor in x before the last precise bin
 MAX_PHOTONS, MIN_PHOTONS = 4_000_000, 16_384  # per node and pass, for --budget passes
 # the bright passes: (lowest logit a', highest logit a' = the walk's, first pass number,
 # photons relative to --bright); each group's walk at its highest albedo is re-weighted to
@@ -183,11 +191,20 @@ def _run_one(args):
     return str(out), time.perf_counter() - t0
 
 
-def run(photons: int, passes: int, jobs: int, runs: Path, budget: float | None = None):
+def run(
+    photons: int,
+    passes: int,
+    jobs: int,
+    runs: Path,
+    budget: float | None = None,
+    max_photons: int = MAX_PHOTONS,
+    logits: tuple[float, float] = (-np.inf, np.inf),
+):
     """Pass 0 traces `photons` per node. With a `budget` (free flights per node), every
-    later pass traces `budget / steps` photons (at most `MAX_PHOTONS`), `steps` the mean
+    later pass traces `budget / steps` photons (at most `max_photons`), `steps` the mean
     free flights per photon that pass 0 measured: cheap (dark) nodes get many photons,
-    where their relative error was largest."""
+    where their relative error was largest. The later passes are limited to the albedo
+    nodes with `logit a'` in `logits` (the shipped table's third pass: the dark nodes)."""
     runs.mkdir(parents=True, exist_ok=True)
 
     def n_for(ie, ia, p):
@@ -195,27 +212,31 @@ def run(photons: int, passes: int, jobs: int, runs: Path, budget: float | None =
             return photons
         first = runs / run_name(ie, ia, 0)
         steps = float(np.load(first)["steps"]) if first.exists() else 1.0
-        return int(min(MAX_PHOTONS, budget / max(steps, 1.0)))
+        return int(min(max_photons, budget / max(steps, 1.0)))
 
-    # dearest first (high albedo walks longest), so the pool stays busy to the end
-    todo = [
-        (ie, ia, p, n_for(ie, ia, p), str(runs))
-        for p in range(passes)
-        for ia in reversed(range(LOGITS.size))
-        for ie in range(ETAS.size)
-        if not (runs / run_name(ie, ia, p)).exists()
-    ]
-    todo = [t for t in todo if t[3] >= MIN_PHOTONS]
-    print(f"profile table: {len(todo)} runs to do ({jobs} jobs)", flush=True)
-    t0 = time.perf_counter()
+    # pass 0 first: the later passes' photon counts come from the steps it measured (a
+    # list made before it ran would give every node MAX_PHOTONS); dearest first within a
+    # pass (high albedo walks longest), so the pool stays busy to the end
     ctx = mp.get_context("spawn")
+    t0 = time.perf_counter()
     with cf.ProcessPoolExecutor(jobs, mp_context=ctx) as ex:
-        for k, (name, sec) in enumerate(ex.map(_run_one, todo), 1):
-            el = time.perf_counter() - t0
-            print(
-                f"  [{k}/{len(todo)}] {Path(name).name} {sec:.0f} s (elapsed {el:.0f} s)",
-                flush=True,
-            )
+        for group in ([0], list(range(1, passes))):
+            todo = [
+                (ie, ia, p, n_for(ie, ia, p), str(runs))
+                for p in group
+                for ia in reversed(range(LOGITS.size))
+                for ie in range(ETAS.size)
+                if not (runs / run_name(ie, ia, p)).exists()
+                and (p == 0 or logits[0] - 1e-9 <= LOGITS[ia] <= logits[1] + 1e-9)
+            ]
+            todo = [t for t in todo if t[3] >= MIN_PHOTONS]
+            print(f"profile table: {len(todo)} runs to do ({jobs} jobs)", flush=True)
+            for k, (name, sec) in enumerate(ex.map(_run_one, todo), 1):
+                el = time.perf_counter() - t0
+                print(
+                    f"  [{k}/{len(todo)}] {Path(name).name} {sec:.0f} s (elapsed {el:.0f} s)",
+                    flush=True,
+                )
 
 
 def _merged(runs: Path, ie: int, ia: int):
@@ -280,66 +301,139 @@ def _smooth(lx, t, var, ok):
     return out, out_var
 
 
-def assemble(runs: Path, table: Path):
+def _bins():
+    """Table nodes `x` (geometric bin centres, uniform in log x) and the 16-point
+    Gauss-Legendre rule `(rq, wq)` of each bin's annulus, with its area."""
+    lo, hi = EDGES[1:-1], EDGES[2:]
+    x = np.sqrt(lo * hi)
+    gx, gw = np.polynomial.legendre.leggauss(16)
+    rq = lo[:, None] + (hi - lo)[:, None] * (gx + 1) / 2  # (bins, 16)
+    wq = (hi - lo)[:, None] / 2 * gw * 2 * np.pi * rq
+    return x, rq, wq, np.pi * (hi**2 - lo**2)
+
+
+def node_data(runs: Path, ia: int, ie: int) -> dict:
+    """One node's merged runs as the raw log ratio to the better dipole, per bin: `t`, its
+    variance `var` (inf where imprecise), the precise mask `ok`, and the smoothed `s`, `sv`
+    (NaN where not smoothed), with `x`, the asymptotic `slope` and the merged run `m`."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
+    from sssjax import profiles
+
+    x, rq, wq, area = _bins()
+    a = float(albedo(LOGITS[ia]))
+    eta = float(ETAS[ie])
+    m = _merged(runs, ie, ia)
+    bd = np.asarray(profiles.Rd(jnp.asarray(rq), 1.0 - a, a, eta, "better_dipole"))
+    bd_mean = np.sum(wq * bd, 1) / area
+    mc, se = m["profile"][1:], m["stderr"][1:]
+    ok = (mc > 0) & (se < REL_OK * np.where(mc > 0, mc, 1)) & (m["counts"][1:] >= 20)
+    t = np.where(ok, np.log(np.where(mc > 0, mc, 1) / bd_mean), 0.0)
+    var = np.where(ok, (se / np.where(mc > 0, mc, 1)) ** 2, np.inf)
+    s, sv = _smooth(np.log(x), t, var, ok)
+    k_bd = float(profiles.sigma_tr_better(1.0 - a, a))
+    return dict(x=x, t=t, var=var, ok=ok, s=s, sv=sv, slope=k_bd - case_kappa(a), m=m, a=a)
+
+
+# Tail models: `T = slope x + sum_i c_i b_i(x)`, fitted by weighted least squares to the
+# raw precise bins of the last decade (`tail_fit`); `slope = kappa_bd - kappa` is the exact
+# asymptotic decay (both profiles fall as e^{-k x} / x^2 far out, each with its own k)
+TAIL_BASES = {
+    "line": lambda u: [np.ones_like(u)],  # the asymptote alone (the first table's tail)
+    "inverse2": lambda u: [np.ones_like(u), 1.0 / u, 1.0 / u**2],  # + its 1/x corrections
+    "free": lambda u: [np.ones_like(u), u],  # a straight line of free slope
+}
+
+
+def tail_fit(x, t, var, ok, slope, x_end, basis):
+    """One of `TAIL_BASES` fitted to the precise bins `ok` over the decade before `x_end`
+    (from 1 mfp at least; a half decade with the line alone where that leaves too few
+    bins). Returns a function `u -> (T(u), its standard error)`."""
+    base = TAIL_BASES[basis]
+    win = ok & (x <= x_end * (1 + 1e-9)) & (x >= max(x_end / TAIL_DECADE, 1.0))
+    if win.sum() < 2 * len(base(x[:1])):
+        win = ok & (x <= x_end * (1 + 1e-9)) & (x >= x_end / 10**0.5)
+        base = TAIL_BASES["line"]
+    A = np.stack(base(x[win]), -1)
+    w = 1.0 / var[win]
+    cov = np.linalg.pinv(A.T @ (w[:, None] * A))
+    coef = cov @ (A.T @ (w * (t[win] - slope * x[win])))
+
+    def f(u):
+        u = np.asarray(u, np.float64)
+        B = np.stack(base(u), -1)
+        return B @ coef + slope * u, np.sqrt(np.einsum("...i,ij,...j->...", B, cov, B))
+
+    return f
+
+
+def tail_model(x, t, var, ok, slope, x_end, basis="envelope"):
+    """The tail continuation at the nodes `x` and its standard error. `"envelope"` (what
+    the table uses): the mean of the `"inverse2"` and `"free"` fits, with their full
+    difference added to the statistical error as the model's uncertainty. Neither alone
+    extrapolates within its error (`check_tail`: between reduced albedo 0.5 and 0.95 the
+    profile still rises against the asymptote at 10-20 mfp, faster than the 1/x terms allow;
+    a free slope overshoots for bright media); the truth lies between them. Any other name:
+    that one of `TAIL_BASES` with its statistical error only."""
+    if basis != "envelope":
+        return tail_fit(x, t, var, ok, slope, x_end, basis)(x)
+    f1, e1 = tail_fit(x, t, var, ok, slope, x_end, "inverse2")(x)
+    f2, e2 = tail_fit(x, t, var, ok, slope, x_end, "free")(x)
+    return 0.5 * (f1 + f2), np.sqrt(0.5 * (e1**2 + e2**2) + (f1 - f2) ** 2)
+
+
+def assemble(runs: Path, table: Path):
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
     from sssjax import profiles, reference
 
-    lo, hi = EDGES[1:-1], EDGES[2:]
-    x = np.sqrt(lo * hi)  # nodes: geometric bin centres (uniform in log x)
+    x, _, _, _ = _bins()
     lx = np.log(x)
-    gx, gw = np.polynomial.legendre.leggauss(16)
-    rq = lo[:, None] + (hi - lo)[:, None] * (gx + 1) / 2  # (bins, 16)
-    wq = (hi - lo)[:, None] / 2 * gw * 2 * np.pi * rq
-    area = np.pi * (hi**2 - lo**2)
     na, ne, nx = LOGITS.size, ETAS.size, x.size
     T = np.zeros((nx, na, ne))
     T_err = np.full((nx, na, ne), np.nan)
+    cont = np.zeros((nx, na, ne), bool)
     tot = np.zeros((na, ne))
     tot_err = np.zeros((na, ne))
     log_total_ratio = np.zeros((na, ne))
     slope = np.zeros(na)
     photons = np.zeros((na, ne), np.int64)
-    for ia, lg in enumerate(LOGITS):
-        a = float(albedo(lg))
-        k_bd = float(profiles.sigma_tr_better(1.0 - a, a))
-        slope[ia] = k_bd - case_kappa(a)
+    for ia in range(na):
         for ie, eta in enumerate(ETAS):
-            m = _merged(runs, ie, ia)
+            d = node_data(runs, ia, ie)
+            m, s, sv, a = d["m"], d["s"], d["sv"], d["a"]
+            slope[ia] = d["slope"]
             photons[ia, ie] = m["n_photons"]
-            bd = np.asarray(profiles.Rd(jnp.asarray(rq), 1.0 - a, a, float(eta), "better_dipole"))
-            bd_mean = np.sum(wq * bd, 1) / area
-            mc, se = m["profile"][1:], m["stderr"][1:]
-            ok = (mc > 0) & (se < REL_OK * np.where(mc > 0, mc, 1)) & (m["counts"][1:] >= 20)
-            t = np.where(ok, np.log(np.where(mc > 0, mc, 1) / bd_mean), 0.0)
-            var = np.where(ok, (se / np.where(mc > 0, mc, 1)) ** 2, np.inf)
-            s, sv = _smooth(lx, t, var, ok)
             good = np.isfinite(s)
             if not good.any():
                 raise SystemExit(f"profile table: no precise bin at a'={a:.5g}, eta={eta}")
             first, last = np.argmax(good), nx - 1 - np.argmax(good[::-1])
-            # the tail anchor: the last precise bin alone carries 10-20% noise, and a bright
-            # medium's sigma_a rests on this tail; so the continuation starts from a
-            # weighted fit of `T - slope x` over the last half decade of precise bins, to
-            # which the smoothed values are blended linearly in log x across that window
-            win = good & (x >= x[last] / 10**0.5)
-            wv = 1.0 / sv[win]
-            c0 = np.sum(wv * (s[win] - slope[ia] * x[win])) / np.sum(wv)
-            line = c0 + slope[ia] * x
-            j = np.nonzero(win)[0]
-            t = (lx[j] - lx[j[0]]) / max(lx[last] - lx[j[0]], 1e-12)
-            s[j] = (1 - t) * s[j] + t * line[j]
+            # the tail: the last precise bins alone carry 10-20% noise, and a bright
+            # medium's sigma_a rests on them; so beyond the precise bins the table follows
+            # `tail_model` (the envelope, with its error), and over the last half decade of
+            # them the smoothed values are blended to it linearly in log x
+            f, fe = tail_model(x, d["t"], d["var"], d["ok"], d["slope"], x[last])
+            j = np.nonzero(good & (x >= x[last] / 10**0.5))[0]
+            u = (lx[j] - lx[j[0]]) / max(lx[last] - lx[j[0]], 1e-12)
             col = s.copy()
+            err = np.sqrt(sv)
+            col[j] = (1 - u) * s[j] + u * f[j]
+            err[j] = np.sqrt((1 - u) * sv[j] + u * fe[j] ** 2)
             col[:first] = s[first]
-            col[last + 1 :] = line[last + 1 :]
+            col[last + 1 :] = f[last + 1 :]
+            err[last + 1 :] = fe[last + 1 :]
+            cont[last + 1 :, ia, ie] = True
             # interior holes (an isolated imprecise bin): linear in log x
             hole = ~good & (np.arange(nx) > first) & (np.arange(nx) < last)
             col[hole] = np.interp(lx[hole], lx[good], s[good])
+            err[hole] = np.interp(lx[hole], lx[good], np.sqrt(sv[good]))
             T[:, ia, ie] = col
-            T_err[good, ia, ie] = np.sqrt(sv[good])
+            T_err[first:, ia, ie] = err[first:]
             tot[ia, ie] = m["total"]
             tot_err[ia, ie] = math.hypot(m["total_stderr"], m["lost"])
             bd_tot = float(profiles.Rd_total(1.0 - a, a, float(eta), "better_dipole"))
@@ -371,6 +465,7 @@ def assemble(runs: Path, table: Path):
         eta=ETAS,
         T=T.astype(np.float32),
         T_err=T_err.astype(np.float32),
+        continued=cont,
         slope=slope.astype(np.float32),
         ms_total=tot.astype(np.float32),
         ms_total_err=tot_err.astype(np.float32),
@@ -383,13 +478,66 @@ def assemble(runs: Path, table: Path):
         seed0=np.array(SEED0),
         smooth_half=np.array(HALF),
     )
-    rel = T_err[np.isfinite(T_err)]
+    rel = T_err[np.isfinite(T_err) & ~cont]  # the precise nodes (the continued: below)
     print(
         f"profile table: wrote {table} ({table.stat().st_size / 1024:.0f} KiB); "
         f"{photons.min()}-{photons.max()} photons per node; relative error of the precise "
         f"nodes: median {np.median(rel):.2%}, 90th percentile {np.percentile(rel, 90):.2%}; "
         f"totals: median {np.median(tot_err / tot):.2%}"
     )
+    x_last = np.array([[x[~cont[:, i, j]].max() for j in range(ne)] for i in range(na)])
+    print(
+        "profile table: precise out to x = "
+        + ", ".join(
+            f"{x_last[i].min():.3g}-{x_last[i].max():.3g} (a' {albedo(LOGITS[i]):.3g})"
+            for i in range(0, na, 4)
+        )
+        + " mfp; the envelope continues beyond"
+    )
+
+
+def check_tail(runs: Path, cut: float = 10**0.5, bases=("line", "inverse2", "free", "envelope")):
+    """Held-out check of the tail continuation on the table's own runs: for every node, the
+    continuation is rebuilt from the precise bins up to `cut` times before the last one and
+    compared with the held-out bins beyond (the build's own Monte Carlo, independent of the
+    bins it was fitted to). Prints, per albedo node, the mean and rms over the held-out bins
+    (all eta) of `z = (t - T) / sqrt(var + T_err^2)` for each `tail_model`: `|mean z| >>
+    0` or `rms z >> 1` is a continuation that misleads a fit."""
+    x, _, _, _ = _bins()
+    print(
+        f"held out: the precise bins beyond 1/{cut:.3g} of the last one; per basis: mean z, rms z"
+    )
+    print(f"{'logit':>6} {'a_prime':>8} {'bins':>5} " + " ".join(f"{b:>13}" for b in bases))
+    allz = {b: [] for b in bases}
+    for ia in range(LOGITS.size):
+        zs = {b: [] for b in bases}
+        for ie in range(ETAS.size):
+            d = node_data(runs, ia, ie)
+            good = np.isfinite(d["s"])
+            last = x.size - 1 - np.argmax(good[::-1])
+            x_cut = x[last] / cut
+            held = d["ok"] & (x > x_cut * (1 + 1e-9))
+            seen = d["ok"] & (x <= x_cut * (1 + 1e-9))
+            if held.sum() < 2 or seen.sum() < 8:
+                continue
+            var = np.where(seen, d["var"], np.inf)
+            for b in bases:
+                f, fe = tail_model(x, d["t"], var, seen, d["slope"], x_cut, basis=b)
+                zs[b].append((d["t"][held] - f[held]) / np.sqrt(d["var"][held] + fe[held] ** 2))
+        if not zs[bases[0]]:
+            continue
+        row = f"{LOGITS[ia]:6.1f} {albedo(LOGITS[ia]):8.5f} {sum(z.size for z in zs[bases[0]]):5d} "
+        for b in bases:
+            z = np.concatenate(zs[b])
+            allz[b].append(z)
+            row += f" {z.mean():+6.2f} {np.sqrt(np.mean(z**2)):6.2f}"
+        print(row)
+    for b in bases:
+        z = np.concatenate(allz[b])
+        print(
+            f"all nodes, {b}: {z.size} held-out bins, mean z {z.mean():+.2f}, rms z "
+            f"{np.sqrt(np.mean(z**2)):.2f}, |z| > 3: {np.mean(np.abs(z) > 3):.1%}"
+        )
 
 
 def main():
@@ -409,13 +557,30 @@ def main():
         help="add --bright-passes re-weighted walks of PHOTONS per eta for the bright nodes",
     )
     ap.add_argument("--bright-passes", type=int, default=2)
+    ap.add_argument(
+        "--max-photons", type=float, default=MAX_PHOTONS, help="cap per node and later pass"
+    )
+    ap.add_argument(
+        "--logits",
+        default=None,
+        metavar="LO,HI",
+        help="limit the passes after the first to albedo nodes with logit a' in [LO, HI]",
+    )
     ap.add_argument("--runs", type=Path, default=ROOT / "out" / "profile_table" / "runs")
     ap.add_argument("--table", type=Path, default=TABLE)
     ap.add_argument("--assemble", action="store_true", help="only assemble the existing runs")
+    ap.add_argument(
+        "--check-tail", action="store_true", help="only the held-out check of the tail model"
+    )
+    ap.add_argument("--cut", type=float, default=10**0.5, help="--check-tail's held-out factor")
     a = ap.parse_args()
     t0 = time.perf_counter()
+    if a.check_tail:
+        check_tail(a.runs, a.cut)
+        return
     if not a.assemble:
-        run(a.photons, a.passes, a.jobs, a.runs, a.budget)
+        lim = tuple(float(v) for v in a.logits.split(",")) if a.logits else (-np.inf, np.inf)
+        run(a.photons, a.passes, a.jobs, a.runs, a.budget, int(a.max_photons), lim)
         if a.bright:
             bright(a.bright, a.bright_passes, a.jobs, a.runs)
     assemble(a.runs, a.table)

@@ -6,7 +6,8 @@ The table `data/tabulated_profile.npz` is built by `benchmarks/profile_table.py`
 
 - multiple scattering `R_ms(r) = R_bd(r) exp(T(log x, logit a', eta))`, d'Eon's better dipole
   `R_bd` (`sssjax.profiles`, exact in its dependence on the coefficients) corrected by the
-  tabulated Monte Carlo log ratio `T`;
+  tabulated Monte Carlo log ratio `T` (beyond the runs' precise bins a fitted continuation
+  whose error includes the model's: `profiles.tabulated_error`);
 - its total `exp(T_tot(logit a', eta)) Rd_total_bd`;
 - single scattering `a' sigmap_t^2 S(x, eta)` under the normally incident beam, isotropic
   phase (the exact closed form, tabulated), and its total `a' S_total(eta)`.

@@ -306,7 +306,7 @@ def _tab_total(sigma_a, sigmap_s, eta):
 
 @functools.cache
 def _tab_err_filled() -> np.ndarray:
-    """`T_err` with the continued nodes given the error of the nearest precise node."""
+    """`T_err` with the nodes before the first precise one given its error."""
     err = np.asarray(_tabulated.table()["T_err"], np.float64)
     filled = err.copy()
     pos = np.arange(err.shape[0])
@@ -323,8 +323,9 @@ def tabulated_error(
 ) -> np.ndarray:
     """The tabulated profile's relative Monte Carlo error (one standard error) at `r` (mm)
     for the coefficients (mm^-1), interpolated like the profile (NumPy, float64). Where the
-    table continues the profile beyond its precise bins, the error of the nearest precise
-    node: a floor, not a bound, there."""
+    table continues the profile beyond its precise bins, the propagated error of the tail
+    model fitted to them (`benchmarks/profile_table.py`): its statistical error, not a bound
+    on the model's."""
     tab = _tabulated.table()
     spt, _, logit = _tabulated.reduced(sigma_a, sigmap_s, jnp.float32)
     x = jnp.asarray(r, jnp.float32) * spt
@@ -373,7 +374,9 @@ def tabulated_covariance(
     )
     ia = int(np.argmin(np.abs(tab["logit"] - logit)))
     ie = int(np.argmin(np.abs(tab["eta"] - float(eta))))
-    good = np.flatnonzero(np.isfinite(tab["T_err"][:, ia, ie]))
+    err = tab["T_err"][:, ia, ie]
+    cont = tab["continued"][:, ia, ie] if "continued" in tab else ~np.isfinite(err)
+    good = np.flatnonzero(np.isfinite(err) & ~cont)
     u = (np.log(np.maximum(r * spt, 1e-300)) - lx_nodes[0]) / h
     if good.size:
         u = np.clip(u, good[0], good[-1])
