@@ -1,8 +1,12 @@
 """Build the table behind `profile = "tabulated"` from `sssjax.reference` (rerunnable).
 
     python benchmarks/profile_table.py                 # run what is missing, then assemble
-    python benchmarks/profile_table.py --passes 2 --budget 2e7 --bright 300000  # the shipped table
+    # the shipped table: two passes and the bright walks (44 min on 2 cores), then a third
+    # pass for the dark and middle nodes (reduced albedo 0.011-0.95; 29 min)
+    python benchmarks/profile_table.py --passes 2 --budget 2e7 --bright 300000 --bright-passes 2
+    python benchmarks/profile_table.py --passes 3 --budget 2e8 --max-photons 40e6 --logits=-4.5,3.0
     python benchmarks/profile_table.py --assemble      # only rebuild the table from the runs
+    python benchmarks/profile_table.py --check-tail --cut 2  # the tail's held-out check
 
 The exitant profile of a semi-infinite medium under a normally incident pencil beam depends,
 in reduced units (`x = r sigmap_t`, `sigmap_t = sigma_a + sigmap_s`), only on the reduced
