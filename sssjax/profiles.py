@@ -323,9 +323,9 @@ def tabulated_error(
 ) -> np.ndarray:
     """The tabulated profile's relative Monte Carlo error (one standard error) at `r` (mm)
     for the coefficients (mm^-1), interpolated like the profile (NumPy, float64). Where the
-    table continues the profile beyond its precise bins, the propagated error of the tail
-    model fitted to them (`benchmarks/profile_table.py`): its statistical error, not a bound
-    on the model's."""
+    table continues the profile beyond its precise bins, the error of its envelope of two
+    tail fits (`benchmarks/profile_table.py`): their statistical error plus their
+    difference, the model's uncertainty (`--check-tail` measures how well it covers)."""
     tab = _tabulated.table()
     spt, _, logit = _tabulated.reduced(sigma_a, sigmap_s, jnp.float32)
     x = jnp.asarray(r, jnp.float32) * spt
