@@ -355,23 +355,17 @@ TAIL_BASES = {
 def tail_fit(x, t, var, ok, slope, x_end, basis):
     """One of `TAIL_BASES` fitted to the precise bins `ok` over the decade before `x_end`
     (from 1 mfp at least; a half decade with the line alone where that leaves too few
-    bins). Returns a function `u -> (T(u), its standard error)`."""
+    bins). Returns `T` at the nodes `x` and its standard error."""
     base = TAIL_BASES[basis]
     win = ok & (x <= x_end * (1 + 1e-9)) & (x >= max(x_end / TAIL_DECADE, 1.0))
     if win.sum() < 2 * len(base(x[:1])):
         win = ok & (x <= x_end * (1 + 1e-9)) & (x >= x_end / 10**0.5)
         base = TAIL_BASES["line"]
-    A = np.stack(base(x[win]), -1)
+    B = np.stack(base(x), -1)
     w = 1.0 / var[win]
-    cov = np.linalg.pinv(A.T @ (w[:, None] * A))
-    coef = cov @ (A.T @ (w * (t[win] - slope * x[win])))
-
-    def f(u):
-        u = np.asarray(u, np.float64)
-        B = np.stack(base(u), -1)
-        return B @ coef + slope * u, np.sqrt(np.einsum("...i,ij,...j->...", B, cov, B))
-
-    return f
+    cov = np.linalg.pinv(B[win].T @ (w[:, None] * B[win]))
+    coef = cov @ (B[win].T @ (w * (t[win] - slope * x[win])))
+    return B @ coef + slope * x, np.sqrt(np.einsum("...i,ij,...j->...", B, cov, B))
 
 
 def tail_model(x, t, var, ok, slope, x_end, basis="envelope"):
@@ -383,9 +377,9 @@ def tail_model(x, t, var, ok, slope, x_end, basis="envelope"):
     a free slope overshoots for bright media); the truth lies between them. Any other name:
     that one of `TAIL_BASES` with its statistical error only."""
     if basis != "envelope":
-        return tail_fit(x, t, var, ok, slope, x_end, basis)(x)
-    f1, e1 = tail_fit(x, t, var, ok, slope, x_end, "inverse2")(x)
-    f2, e2 = tail_fit(x, t, var, ok, slope, x_end, "free")(x)
+        return tail_fit(x, t, var, ok, slope, x_end, basis)
+    f1, e1 = tail_fit(x, t, var, ok, slope, x_end, "inverse2")
+    f2, e2 = tail_fit(x, t, var, ok, slope, x_end, "free")
     return 0.5 * (f1 + f2), np.sqrt(0.5 * (e1**2 + e2**2) + (f1 - f2) ** 2)
 
 

@@ -374,9 +374,7 @@ def tabulated_covariance(
     )
     ia = int(np.argmin(np.abs(tab["logit"] - logit)))
     ie = int(np.argmin(np.abs(tab["eta"] - float(eta))))
-    err = tab["T_err"][:, ia, ie]
-    cont = tab["continued"][:, ia, ie] if "continued" in tab else ~np.isfinite(err)
-    good = np.flatnonzero(np.isfinite(err) & ~cont)
+    good = np.flatnonzero(np.isfinite(tab["T_err"][:, ia, ie]) & ~tab["continued"][:, ia, ie])
     u = (np.log(np.maximum(r * spt, 1e-300)) - lx_nodes[0]) / h
     if good.size:
         u = np.clip(u, good[0], good[-1])
